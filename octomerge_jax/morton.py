@@ -1,0 +1,294 @@
+"""Keys, Morton codes and metric coordinates, exactly as OctoMap computes them.
+
+OctoMap (``OcTreeBaseImpl.h``) addresses a finest voxel by a key of three 16-bit integers,
+``key = floor(coord * (1 / res)) + 32768`` per axis, and a node at depth ``d`` (0 = root,
+16 = finest) covers the ``2^(16-d)``-wide cube of keys sharing their top ``d`` bits.
+
+We order leaves by the **Morton code** of their minimum-corner finest key: the 48-bit
+interleave ``... z1 y1 x1 z0 y0 x0`` (x in the lowest bit, matching OctoMap's child index
+``bit0 = x, bit1 = y, bit2 = z``). Pre-order traversal of an octree visits leaves in
+increasing Morton order, so the file formats and our flat arrays share one order.
+
+**64-bit without touching the user's JAX config.** 48 bits do not fit JAX's default 32-bit
+integers and we never flip ``jax_enable_x64`` (``jax_explicit_x64_dtypes`` exists in JAX
+0.10 but ``asarray`` still truncates there). So a code is two non-negative ``int32`` words,
+``words[..., 0] = hi`` (the interleave of the top 8 key bits per axis, i.e. the depth-8
+cell) and ``words[..., 1] = lo`` (the interleave of the low 8 bits), each < 2^24. Pairs
+sort with ``lax.sort(..., num_keys=2)`` and compare lexicographically. On the host (NumPy)
+a code is a plain ``uint64``; ``split_codes`` / ``join_codes`` convert.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+TREE_DEPTH = 16
+KEY_OFFSET = 32768  # OctoMap's tree_max_val
+WORD_BITS = 24
+WORD_MASK = (1 << WORD_BITS) - 1
+SENTINEL_HI = 1 << WORD_BITS  # padding rows: hi word past every real code, so they sort last
+SENTINEL_CODE = np.uint64(SENTINEL_HI) << np.uint64(WORD_BITS)
+
+__all__ = [
+    "TREE_DEPTH",
+    "KEY_OFFSET",
+    "SENTINEL_HI",
+    "SENTINEL_CODE",
+    "coords_to_keys",
+    "keys_to_coords",
+    "keys_to_codes",
+    "codes_to_keys",
+    "split_codes",
+    "join_codes",
+    "leaf_centers",
+    "node_size",
+    "level_shift",
+    "keys_to_words",
+    "words_to_keys",
+    "truncate_words",
+    "child_index_words",
+    "or_offset_words",
+    "words_less",
+    "words_equal",
+    "searchsorted_words",
+    "points_to_keys",
+]
+
+
+# ----------------------------------------------------------------------------- host (NumPy)
+
+
+def node_size(depth, resolution: float):
+    """Edge length in metres of a node at ``depth`` (OctoMap ``getNodeSize``)."""
+    return resolution * np.exp2(TREE_DEPTH - np.asarray(depth, dtype=np.float64))
+
+
+def level_shift(depth):
+    """Number of low Morton bits a node at ``depth`` spans: ``3 * (16 - depth)``."""
+    return 3 * (TREE_DEPTH - np.asarray(depth))
+
+
+def coords_to_keys(points, resolution: float, *, name: str = "points") -> np.ndarray:
+    """Metric points ``(..., 3)`` [m] -> finest keys ``(..., 3)`` uint16, as OctoMap's
+    ``coordToKeyChecked`` (``floor(coord * (1/res)) + 32768``, double precision).
+
+    Raises ``ValueError`` naming the first offending value when a coordinate is not finite
+    or lies outside ``[-32768 res, 32768 res)``.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.shape[-1:] != (3,):
+        raise ValueError(f"{name}: expected shape (..., 3), got {p.shape}")
+    factor = 1.0 / float(resolution)
+    with np.errstate(invalid="ignore", over="ignore"):
+        scaled = np.floor(p * factor) + KEY_OFFSET
+    bad = ~np.isfinite(scaled) | (scaled < 0) | (scaled >= 2 * KEY_OFFSET)
+    if bad.any():
+        idx = np.argwhere(bad)[0]
+        value = float(p[tuple(idx)])
+        raise ValueError(
+            f"{name}: coordinate {value!r} (index {tuple(int(i) for i in idx)}) is outside the "
+            f"OctoMap key range [-{KEY_OFFSET * resolution:g}, {KEY_OFFSET * resolution:g}) m "
+            f"for resolution {resolution:g} m; move the map to a local frame"
+        )
+    return scaled.astype(np.uint16)
+
+
+def keys_to_coords(keys, resolution: float, depth=TREE_DEPTH) -> np.ndarray:
+    """Centre [m] of the node at ``depth`` containing finest ``keys`` (OctoMap ``keyToCoord``).
+
+    ``(floor((key - 32768) / 2^(16-d)) + 0.5) * nodeSize(d)``; depth 0 gives 0.0.
+    Returns float64 (OctoMap rounds to float32 when it builds a ``point3d``).
+    """
+    k = np.asarray(keys, dtype=np.int64) - KEY_OFFSET
+    d = np.asarray(depth, dtype=np.int64)
+    if d.ndim:
+        d = d[..., None]
+    shift = TREE_DEPTH - d
+    size = resolution * np.exp2(shift.astype(np.float64))
+    centers = ((k >> shift).astype(np.float64) + 0.5) * size
+    return np.where(d == 0, 0.0, centers)
+
+
+def _spread3(v: np.ndarray) -> np.ndarray:
+    """Spread the low 16 bits of ``v`` to every third bit (uint64)."""
+    v = v.astype(np.uint64) & np.uint64(0xFFFF)
+    v = (v | (v << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x1249249249249249)
+    return v
+
+
+def _compact3(v: np.ndarray) -> np.ndarray:
+    """Inverse of ``_spread3``: gather every third bit into the low 16 bits."""
+    v = v.astype(np.uint64) & np.uint64(0x1249249249249249)
+    v = (v | (v >> np.uint64(2))) & np.uint64(0x10C30C30C30C30C3)
+    v = (v | (v >> np.uint64(4))) & np.uint64(0x100F00F00F00F00F)
+    v = (v | (v >> np.uint64(8))) & np.uint64(0x1F0000FF0000FF)
+    v = (v | (v >> np.uint64(16))) & np.uint64(0x1F00000000FFFF)
+    v = (v | (v >> np.uint64(32))) & np.uint64(0xFFFF)
+    return v
+
+
+def keys_to_codes(keys) -> np.ndarray:
+    """Finest keys ``(..., 3)`` -> 48-bit Morton codes ``(...,)`` uint64 (x lowest)."""
+    k = np.asarray(keys)
+    return _spread3(k[..., 0]) | (_spread3(k[..., 1]) << np.uint64(1)) | (_spread3(k[..., 2]) << np.uint64(2))
+
+
+def codes_to_keys(codes) -> np.ndarray:
+    """48-bit Morton codes ``(...,)`` -> finest keys ``(..., 3)`` uint16."""
+    c = np.asarray(codes, dtype=np.uint64)
+    return np.stack(
+        [_compact3(c), _compact3(c >> np.uint64(1)), _compact3(c >> np.uint64(2))], axis=-1
+    ).astype(np.uint16)
+
+
+def split_codes(codes) -> np.ndarray:
+    """uint64 codes ``(...,)`` -> int32 words ``(..., 2)`` = (hi, lo), 24 bits each."""
+    c = np.asarray(codes, dtype=np.uint64)
+    hi = (c >> np.uint64(WORD_BITS)).astype(np.int32)
+    lo = (c & np.uint64(WORD_MASK)).astype(np.int32)
+    return np.stack([hi, lo], axis=-1)
+
+
+def join_codes(words) -> np.ndarray:
+    """int32 words ``(..., 2)`` -> uint64 codes ``(...,)``."""
+    w = np.asarray(words).astype(np.uint64)
+    return (w[..., 0] << np.uint64(WORD_BITS)) | w[..., 1]
+
+
+def leaf_centers(codes, depths, resolution: float) -> np.ndarray:
+    """Centres ``(n, 3)`` float64 [m] of leaves given min-corner codes and depths."""
+    return keys_to_coords(codes_to_keys(codes), resolution, np.asarray(depths))
+
+
+# ----------------------------------------------------------------------------- device (JAX)
+
+
+def _spread3_u32(v):
+    """Spread the low 8 bits of a uint32 to every third bit (24-bit result)."""
+    v = v & jnp.uint32(0xFF)
+    v = (v | (v << 8)) & jnp.uint32(0x0300F00F)
+    v = (v | (v << 4)) & jnp.uint32(0x030C30C3)
+    v = (v | (v << 2)) & jnp.uint32(0x09249249)
+    return v
+
+
+def _compact3_u32(v):
+    v = v & jnp.uint32(0x09249249)
+    v = (v | (v >> 2)) & jnp.uint32(0x030C30C3)
+    v = (v | (v >> 4)) & jnp.uint32(0x0300F00F)
+    v = (v | (v >> 8)) & jnp.uint32(0xFF)
+    return v
+
+
+def _interleave8(x, y, z):
+    return _spread3_u32(x) | (_spread3_u32(y) << 1) | (_spread3_u32(z) << 2)
+
+
+def keys_to_words(keys):
+    """Finest keys ``(..., 3)`` (any int dtype, values < 65536) -> code words ``(..., 2)`` int32."""
+    k = jnp.asarray(keys).astype(jnp.uint32)
+    x, y, z = k[..., 0], k[..., 1], k[..., 2]
+    hi = _interleave8(x >> 8, y >> 8, z >> 8)
+    lo = _interleave8(x, y, z)
+    return jnp.stack([hi, lo], axis=-1).astype(jnp.int32)
+
+
+def words_to_keys(words):
+    """Code words ``(..., 2)`` -> finest keys ``(..., 3)`` int32."""
+    w = jnp.asarray(words).astype(jnp.uint32)
+    hi, lo = w[..., 0], w[..., 1]
+    axes = [(_compact3_u32(hi >> a) << 8) | _compact3_u32(lo >> a) for a in range(3)]
+    return jnp.stack(axes, axis=-1).astype(jnp.int32)
+
+
+def points_to_keys(points, resolution):
+    """Metric points ``(..., 3)`` -> (finest keys ``(..., 3)`` int32, in-range mask ``(...,)``).
+
+    The jittable counterpart of ``coords_to_keys`` (in the points' float dtype; out-of-range
+    or non-finite points are flagged rather than raised, since nothing raises inside jit).
+    """
+    p = jnp.asarray(points)
+    scaled = jnp.floor(p * (1.0 / resolution)) + KEY_OFFSET
+    ok = jnp.all(jnp.isfinite(scaled) & (scaled >= 0) & (scaled < 2 * KEY_OFFSET), axis=-1)
+    keys = jnp.clip(jnp.where(jnp.isfinite(scaled), scaled, 0), 0, 2 * KEY_OFFSET - 1)
+    return keys.astype(jnp.int32), ok
+
+
+def _low_mask(shift):
+    """(hi_mask, lo_mask) int32 selecting the low ``shift`` bits (0..48) of a code."""
+    shift = jnp.asarray(shift, jnp.int32)
+    lo_bits = jnp.minimum(shift, WORD_BITS)
+    hi_bits = jnp.clip(shift - WORD_BITS, 0, WORD_BITS)
+    lo_mask = (jnp.left_shift(jnp.int32(1), lo_bits) - 1).astype(jnp.int32)
+    hi_mask = (jnp.left_shift(jnp.int32(1), hi_bits) - 1).astype(jnp.int32)
+    return hi_mask, lo_mask
+
+
+def truncate_words(words, depth):
+    """Min-corner code of the depth-``depth`` node containing ``words`` (clears low bits)."""
+    hi_mask, lo_mask = _low_mask(3 * (TREE_DEPTH - jnp.asarray(depth, jnp.int32)))
+    hi = words[..., 0] & ~hi_mask
+    lo = words[..., 1] & ~lo_mask
+    return jnp.stack([hi, lo], axis=-1)
+
+
+def child_index_words(words, depth):
+    """Child index (0..7) within its parent of the depth-``depth`` node containing ``words``
+    (``depth >= 1``; bit0 = x, bit1 = y, bit2 = z as OctoMap's ``computeChildIdx``)."""
+    shift = 3 * (TREE_DEPTH - jnp.asarray(depth, jnp.int32))  # 0..45
+    in_hi = shift >= WORD_BITS
+    word = jnp.where(in_hi, words[..., 0], words[..., 1])
+    s = jnp.where(in_hi, shift - WORD_BITS, shift)
+    return jnp.right_shift(word, s) & 7
+
+
+def or_offset_words(words, k, shift):
+    """``code | (k << shift)`` for non-negative int32 ``k`` whose shifted bits are free in
+    ``code`` (children of an aligned node). ``shift`` in 0..45."""
+    k = jnp.asarray(k, jnp.int32)
+    shift = jnp.asarray(shift, jnp.int32)
+    big = shift >= WORD_BITS
+    # shift < 24: lo gets the low (24 - shift) bits of k, hi the rest; shift >= 24: all to hi.
+    lo_bits = jnp.where(big, 0, WORD_BITS - shift)
+    lo_part = jnp.where(big, 0, jnp.left_shift(k & (jnp.left_shift(1, lo_bits) - 1), shift))
+    hi_part = jnp.where(big, jnp.left_shift(k, jnp.maximum(shift - WORD_BITS, 0)), jnp.right_shift(k, lo_bits))
+    return jnp.stack([words[..., 0] | hi_part, words[..., 1] | lo_part], axis=-1)
+
+
+def words_less(a, b):
+    """Lexicographic ``a < b`` on code words ``(..., 2)``."""
+    return (a[..., 0] < b[..., 0]) | ((a[..., 0] == b[..., 0]) & (a[..., 1] < b[..., 1]))
+
+
+def words_equal(a, b):
+    return (a[..., 0] == b[..., 0]) & (a[..., 1] == b[..., 1])
+
+
+def searchsorted_words(sorted_words, query_words, side: str = "right"):
+    """``jnp.searchsorted`` for code words: sorted ``(n, 2)``, queries ``(..., 2)`` -> int32.
+
+    ``side="right"``: number of entries ``<= q``; ``"left"``: number of entries ``< q``.
+    A branch-free binary search (``ceil(log2(n + 1))`` gathers), vectorised over queries.
+    """
+    n = sorted_words.shape[0]
+    q = jnp.asarray(query_words)
+    lo = jnp.zeros(q.shape[:-1], jnp.int32)
+    hi = jnp.full(q.shape[:-1], n, jnp.int32)
+    steps = max(1, int(np.ceil(np.log2(n + 1))))
+
+    def body(_, state):
+        lo, hi = state
+        mid = (lo + hi) // 2
+        m = sorted_words[jnp.clip(mid, 0, max(n - 1, 0))]
+        go_right = ~words_less(q, m) if side == "right" else words_less(m, q)
+        go_right = go_right & (mid < hi)
+        return jnp.where(go_right, mid + 1, lo), jnp.where(go_right, hi, mid)
+
+    lo, hi = jax.lax.fori_loop(0, steps, body, (lo, hi))
+    return lo
