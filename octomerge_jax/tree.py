@@ -1,0 +1,432 @@
+"""Tree operations on flat leaf arrays: lookup, prune, expand, clamp, max-likelihood,
+node counts, and OctoMap-style voxel updates with *local* expansion.
+
+Every operation is a sort, a ``searchsorted``, a segment reduction or a scatter over the
+Morton-sorted leaves (``map.py``): no pointers, no recursion, jittable and vmappable. Host
+functions plan a static output capacity when the result size depends on the data, then call
+a jitted kernel (so maps of one capacity bucket share one compilation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import morton
+from .map import OccupancyMap, OccupancyParams, _build, bucket_capacity
+
+__all__ = [
+    "lookup",
+    "lookup_words",
+    "prune",
+    "expand",
+    "clamp",
+    "to_max_likelihood",
+    "num_nodes",
+    "from_voxels",
+    "update_points",
+    "apply_voxel_updates",
+    "occupied_mask",
+    "equal",
+]
+
+_D = morton.TREE_DEPTH
+
+
+# ----------------------------------------------------------------------------- lookup
+
+
+def lookup_words(m: OccupancyMap, words):
+    """Leaf containing each finest code. ``words (..., 2)`` -> ``(row (...,) int32, known (...,) bool)``.
+
+    ``row`` indexes ``m``'s arrays; where ``known`` is False it is clipped garbage. A leaf at
+    any depth matches (a pruned leaf covers its whole cube), as OctoMap's ``search``.
+    """
+    i = morton.searchsorted_words(m.code, words, side="right") - 1
+    row = jnp.clip(i, 0, m.capacity - 1)
+    inside = morton.words_equal(morton.truncate_words(words, m.depth[row]), m.code[row])
+    return row, (i >= 0) & (i < m.count) & inside
+
+
+@jax.jit
+def _lookup_points(m: OccupancyMap, points):
+    keys, in_range = morton.points_to_keys(points, m.resolution)
+    row, known = lookup_words(m, morton.keys_to_words(keys))
+    known = known & in_range
+    return jnp.where(known, m.log_odds[row], jnp.float32(0)), known
+
+
+def lookup(m: OccupancyMap, points):
+    """Log-odds at metric ``points (..., 3)`` [m]: ``(log_odds (...,) float32, known (...,) bool)``.
+
+    Unknown points (no leaf, or outside the key range) give log-odds 0 and ``known=False``.
+    Keys are computed in the points' precision on device (float32 by default); for keys
+    exactly as OctoMap's double arithmetic, use ``morton.coords_to_keys`` on the host.
+    """
+    return _lookup_points(m, jnp.asarray(points))
+
+
+# ----------------------------------------------------------------------------- prune
+
+
+def _shift_up(x, k, fill):
+    """``y[i] = x[i + k]`` (rows past the end take ``fill``)."""
+    pad = jnp.full((k,) + x.shape[1:], fill, x.dtype)
+    return jnp.concatenate([x[k:], pad], axis=0)
+
+
+def _shift_down(x, k, fill):
+    """``y[i] = x[i - k]``."""
+    pad = jnp.full((k,) + x.shape[1:], fill, x.dtype)
+    return jnp.concatenate([pad, x[:-k]], axis=0)
+
+
+def _compact(m: OccupancyMap, keep, depth=None, log_odds=None) -> OccupancyMap:
+    """Keep the rows where ``keep`` (order preserved), padding the rest."""
+    cap = m.capacity
+    depth = m.depth if depth is None else depth
+    log_odds = m.log_odds if log_odds is None else log_odds
+    pos = jnp.where(keep, jnp.cumsum(keep) - 1, cap)
+    code = jnp.zeros_like(m.code).at[:, 0].set(morton.SENTINEL_HI).at[pos].set(m.code, mode="drop")
+    new_depth = jnp.full_like(m.depth, _D).at[pos].set(depth, mode="drop")
+    new_lo = jnp.zeros_like(m.log_odds).at[pos].set(log_odds, mode="drop")
+    count = jnp.sum(keep).astype(jnp.int32)
+    return OccupancyMap(code, new_depth, new_lo, count, m.params, m.resolution, m.tree_depth)
+
+
+def _prune_depth(m: OccupancyMap, d) -> OccupancyMap:
+    """Collapse every complete group of 8 equal sibling leaves at depth ``d`` into its parent."""
+    valid = m.valid_mask()
+    at_d = valid & (m.depth == d)
+    parent = morton.truncate_words(m.code, d - 1)
+    start = at_d & (morton.child_index_words(m.code, d) == 0)
+    for k in range(1, 8):
+        same = (
+            _shift_up(at_d, k, False)
+            & morton.words_equal(_shift_up(parent, k, -1), parent)
+            & (_shift_up(m.log_odds, k, jnp.nan) == m.log_odds)
+        )
+        start = start & same
+    removed = functools.reduce(jnp.logical_or, [_shift_down(start, k, False) for k in range(1, 8)])
+    depth = jnp.where(start, d - 1, m.depth)
+    return _compact(m, valid & ~removed, depth=depth)
+
+
+@jax.jit
+def _prune(m: OccupancyMap) -> OccupancyMap:
+    # Bottom-up: groups collapsed at depth d may complete a group at depth d - 1. The root
+    # (depth 0) is never created, as in OctoMap, whose prune() never prunes the root.
+    return jax.lax.fori_loop(0, _D - 1, lambda i, mm: _prune_depth(mm, _D - i), m)
+
+
+def prune(m: OccupancyMap) -> OccupancyMap:
+    """Prune maximally: every 8 sibling leaves of equal log-odds (exact float equality, as
+    OctoMap's ``isNodeCollapsible``) become their parent, repeated bottom-up. Same capacity."""
+    return _prune(m)
+
+
+def equal(a: OccupancyMap, b: OccupancyMap) -> bool:
+    """Host check: same resolution and identical valid leaves (codes, depths, log-odds)."""
+    if a.resolution != b.resolution or a.num_leaves != b.num_leaves:
+        return False
+    n = a.num_leaves
+    return bool(
+        np.array_equal(np.asarray(a.code[:n]), np.asarray(b.code[:n]))
+        and np.array_equal(np.asarray(a.depth[:n]), np.asarray(b.depth[:n]))
+        and np.array_equal(np.asarray(a.log_odds[:n]), np.asarray(b.log_odds[:n]))
+    )
+
+
+# ----------------------------------------------------------------------------- expand
+
+
+@functools.partial(jax.jit, static_argnames=("depth", "capacity"))
+def _expand(m: OccupancyMap, depth: int, capacity: int) -> OccupancyMap:
+    valid = m.valid_mask()
+    target = jnp.maximum(m.depth, depth)
+    n_children = jnp.where(valid, jnp.left_shift(1, 3 * (target - m.depth)), 0)
+    ends = jnp.cumsum(n_children)
+    o = jnp.arange(capacity, dtype=jnp.int32)
+    src = jnp.clip(jnp.searchsorted(ends, o, side="right"), 0, m.capacity - 1).astype(jnp.int32)
+    k = o - (ends[src] - n_children[src])
+    shift = 3 * (_D - target[src])
+    code = morton.or_offset_words(m.code[src], k, shift)
+    count = ends[-1].astype(jnp.int32)
+    ok = o < count
+    code = jnp.where(ok[:, None], code, jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
+    return OccupancyMap(code, jnp.where(ok, target[src], _D), jnp.where(ok, m.log_odds[src], 0.0),
+                        count, m.params, m.resolution, m.tree_depth)
+
+
+def expand(m: OccupancyMap, depth: int = _D, capacity: int | None = None) -> OccupancyMap:
+    """Split every leaf shallower than ``depth`` into its ``8^(depth - d)`` descendants at
+    ``depth`` (values copied), like OctoMap's ``expand()`` for ``depth=16``.
+
+    The output capacity is planned on the host (``bucket_capacity`` of the exact count).
+    """
+    if not 0 <= int(depth) <= _D:
+        raise ValueError(f"depth must lie in 0..16, got {depth}")
+    d = np.asarray(m.depth[: m.num_leaves]).astype(np.int64)
+    needed = int(np.sum(np.left_shift(1, 3 * np.maximum(int(depth) - d, 0)).astype(np.int64)))
+    if needed > (1 << 31) - 1:
+        raise ValueError(f"expand to depth {depth} would create {needed} leaves (more than 2^31)")
+    cap = bucket_capacity(needed) if capacity is None else int(capacity)
+    if cap < needed:
+        raise ValueError(f"capacity {cap} is smaller than the {needed} expanded leaves")
+    return _expand(m, int(depth), cap)
+
+
+# ----------------------------------------------------------------------------- values
+
+
+@jax.jit
+def clamp(m: OccupancyMap) -> OccupancyMap:
+    """Clip log-odds to ``[clamp_min, clamp_max]`` (padding untouched)."""
+    p = m.params
+    lo = jnp.where(m.valid_mask(), jnp.clip(m.log_odds, p.clamp_min_log_odds, p.clamp_max_log_odds), 0.0)
+    return dataclass_replace(m, log_odds=lo.astype(jnp.float32))
+
+
+@jax.jit
+def to_max_likelihood(m: OccupancyMap) -> OccupancyMap:
+    """Every leaf becomes clamp max if occupied (``>= threshold``) else clamp min (OctoMap
+    ``toMaxLikelihood``). Not pruned: call ``prune`` (the ``.bt`` writer does both)."""
+    p = m.params
+    occ = m.log_odds >= p.occupancy_threshold_log_odds
+    lo = jnp.where(occ, p.clamp_max_log_odds, p.clamp_min_log_odds)
+    return dataclass_replace(m, log_odds=jnp.where(m.valid_mask(), lo, 0.0).astype(jnp.float32))
+
+
+def occupied_mask(m: OccupancyMap):
+    """``(C,)`` bool, valid leaves with ``log_odds >= occupancy threshold``."""
+    return m.is_occupied()
+
+
+def dataclass_replace(m: OccupancyMap, **changes) -> OccupancyMap:
+    return dataclasses.replace(m, **changes)
+
+
+# ----------------------------------------------------------------------------- node count
+
+
+def num_nodes(m: OccupancyMap) -> int:
+    """Number of nodes OctoMap's ``size()`` reports for the same tree: the leaves plus every
+    distinct inner node (all ancestors of the leaves, root included). 0 for an empty map."""
+    n = m.num_leaves
+    if n == 0:
+        return 0
+    codes = morton.join_codes(np.asarray(m.code[:n]))
+    depths = np.asarray(m.depth[:n]).astype(np.int64)
+    total = n
+    for a in range(_D):
+        sel = depths > a
+        if not sel.any():
+            break
+        anc = codes[sel] >> np.uint64(3 * (_D - a))
+        total += int(1 + np.count_nonzero(anc[1:] != anc[:-1]))
+    return total
+
+
+# ----------------------------------------------------------------------------- voxel updates
+#
+# OctoMap updates one finest voxel by x -> clip(x + delta, lo, hi) (``updateNodeLogOdds``,
+# float32); a new voxel starts at 0, and ``updateNode`` returns early when the node found is
+# already at the clamp in the update's direction. Repeated updates of one voxel are applied
+# in order, one round per repetition, so results are bit-identical to OctoMap's sequence.
+
+
+def _fold_updates(seg_start, valid, deltas, base, known, lo, hi):
+    """Apply each voxel's ordered deltas (rows grouped by voxel, ``seg_start`` marks the first
+    row of a group) to its start value ``base``; the result is valid at each group's first row."""
+    n = deltas.shape[0]
+    idx = jnp.arange(n, dtype=jnp.int32)
+    seg_id = jnp.cumsum(seg_start) - 1
+    mult = jax.ops.segment_sum(valid.astype(jnp.int32), seg_id, num_segments=n)[seg_id]
+
+    def body(k, v):
+        d = deltas[jnp.clip(idx + k, 0, n - 1)]
+        at_clamp = ((d >= 0) & (v >= hi)) | ((d <= 0) & (v <= lo))
+        exists = known | (k > 0)
+        apply = (k < mult) & ~(exists & at_clamp)
+        return jnp.where(apply, jnp.clip(v + d, lo, hi), v)
+
+    return jax.lax.fori_loop(0, jnp.max(mult), body, base)
+
+
+# _KTH_ABSENT[mask, k] = index of the k-th child (0..7) whose bit is not set in ``mask``.
+_KTH_ABSENT = np.zeros((256, 8), np.int32)
+for _mask in range(256):
+    _absent = [c for c in range(8) if not (_mask >> c) & 1]
+    _KTH_ABSENT[_mask, : len(_absent)] = _absent
+
+
+def _plan_updates(m: OccupancyMap, words, valid):
+    """Sort/dedupe updated voxels and find the sibling 'filler' leaves that local expansion of
+    coarse leaves creates. Returns a dict of arrays used by ``_apply_updates``."""
+    n = words.shape[0]
+    code = jnp.where(valid[:, None], words, jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
+    order = jnp.arange(n, dtype=jnp.int32)
+    hi, lo, order = jax.lax.sort((code[:, 0], code[:, 1], order), num_keys=2, is_stable=True)
+    code = jnp.stack([hi, lo], axis=-1)
+    valid_sorted = hi < morton.SENTINEL_HI
+    prev = _shift_down(code, 1, -1)
+    seg_start = ~morton.words_equal(code, prev)
+    row, known = lookup_words(m, code)
+    known = known & valid_sorted
+    leaf_depth = jnp.where(known, m.depth[row], _D)
+    # Path nodes: ancestors of unique voxels strictly below their coarse leaf. Entry (j, l)
+    # stands for the level-(l-1) ancestor of voxel j when j is the first voxel under it.
+    levels = jnp.arange(1, _D + 1, dtype=jnp.int32)  # child level l = 1..16
+    first_parent = []
+    masks = []
+    for l in range(1, _D + 1):
+        anc_parent = morton.truncate_words(code, l - 1)
+        anc_child = morton.truncate_words(code, l)
+        fp = ~morton.words_equal(anc_parent, _shift_down(anc_parent, 1, -1))
+        fc = ~morton.words_equal(anc_child, _shift_down(anc_child, 1, -1))
+        run = jnp.cumsum(fp) - 1
+        bits = jnp.where(fc, jnp.left_shift(1, morton.child_index_words(code, l)), 0)
+        mask = jax.ops.segment_sum(bits, run, num_segments=n)[run]
+        first_parent.append(fp)
+        masks.append(mask)
+    first_parent = jnp.stack(first_parent, axis=1)  # (n, 16)
+    masks = jnp.stack(masks, axis=1).astype(jnp.int32)
+    active = first_parent & known[:, None] & (levels[None, :] > leaf_depth[:, None]) & valid_sorted[:, None]
+    popcount = jnp.sum((masks[..., None] >> jnp.arange(8)) & 1, axis=-1)
+    n_fill = jnp.where(active, 8 - popcount, 0).reshape(-1)
+    unique = seg_start & valid_sorted
+    touched = jnp.zeros(m.capacity, jnp.int32).at[jnp.where(known & unique, row, m.capacity)].max(1, mode="drop")
+    return dict(code=code, order=order, seg_start=seg_start, valid=valid_sorted, row=row, known=known,
+                masks=masks.reshape(-1), n_fill=n_fill, unique=unique, touched=touched.astype(bool),
+                num_fill=jnp.sum(n_fill), num_unique=jnp.sum(unique), num_touched=jnp.sum(touched))
+
+
+@jax.jit
+def _count_updates(m: OccupancyMap, words, valid):
+    p = _plan_updates(m, words, valid)
+    return p["num_fill"], p["num_unique"], p["num_touched"]
+
+
+@functools.partial(jax.jit, static_argnames=("fill_capacity", "capacity"))
+def _apply_updates(m: OccupancyMap, words, deltas, valid, fill_capacity: int, capacity: int):
+    p = _plan_updates(m, words, valid)
+    n = words.shape[0]
+    code = p["code"]
+    base = jnp.where(p["known"], m.log_odds[p["row"]], jnp.float32(0))
+    new_value = _fold_updates(p["seg_start"], p["valid"], deltas[p["order"]], base, p["known"],
+                              m.params.clamp_min_log_odds, m.params.clamp_max_log_odds)
+    new_value = new_value.astype(jnp.float32)
+    voxel_keep = p["seg_start"] & p["valid"]
+
+    # Fillers: the absent children of each path node, valued as the coarse leaf they split.
+    ends = jnp.cumsum(p["n_fill"])
+    o = jnp.arange(fill_capacity, dtype=jnp.int32)
+    e = jnp.clip(jnp.searchsorted(ends, o, side="right"), 0, n * _D - 1).astype(jnp.int32)
+    k = o - (ends[e] - p["n_fill"][e])
+    j, lvl = e // _D, e % _D + 1
+    child = jnp.asarray(_KTH_ABSENT)[p["masks"][e], jnp.clip(k, 0, 7)]
+    fill_code = morton.or_offset_words(morton.truncate_words(code[j], lvl - 1), child, 3 * (_D - lvl))
+    fill_ok = o < ends[-1]
+    fill_value = m.log_odds[p["row"][j]]
+
+    keep_old = m.valid_mask() & ~p["touched"]
+    sentinel = jnp.array([morton.SENTINEL_HI, 0], jnp.int32)
+    all_code = jnp.concatenate([
+        jnp.where(keep_old[:, None], m.code, sentinel),
+        jnp.where(fill_ok[:, None], fill_code, sentinel),
+        jnp.where(voxel_keep[:, None], code, sentinel),
+    ])
+    all_depth = jnp.concatenate([m.depth, lvl, jnp.full((n,), _D, jnp.int32)])
+    all_value = jnp.concatenate([m.log_odds, fill_value, new_value])
+    short = capacity - all_depth.shape[0]
+    if short > 0:  # the output bucket can exceed the inputs' total rows
+        all_code = jnp.concatenate([all_code, jnp.broadcast_to(sentinel, (short, 2))])
+        all_depth = jnp.concatenate([all_depth, jnp.full((short,), _D, jnp.int32)])
+        all_value = jnp.concatenate([all_value, jnp.zeros((short,), jnp.float32)])
+    hi, lo, depth, value = jax.lax.sort((all_code[:, 0], all_code[:, 1], all_depth, all_value), num_keys=2)
+    count = (jnp.sum(keep_old) + jnp.sum(fill_ok) + jnp.sum(voxel_keep)).astype(jnp.int32)
+    ok = jnp.arange(capacity) < count
+    out = OccupancyMap(
+        jnp.stack([hi[:capacity], lo[:capacity]], axis=-1),
+        jnp.where(ok, depth[:capacity], _D),
+        jnp.where(ok, value[:capacity], 0.0).astype(jnp.float32),
+        count, m.params, m.resolution, m.tree_depth,
+    )
+    return _prune(out)
+
+
+def _apply(m: OccupancyMap, words, deltas, valid) -> OccupancyMap:
+    words = jnp.asarray(words, jnp.int32).reshape(-1, 2)
+    n = words.shape[0]
+    if n == 0:
+        return m
+    num_fill, num_unique, num_touched = (int(x) for x in _count_updates(m, words, valid))
+    needed = m.num_leaves - num_touched + num_fill + num_unique
+    cap = bucket_capacity(max(needed, m.capacity))
+    return _apply_updates(m, words, deltas, valid, bucket_capacity(num_fill, 256), cap)
+
+
+def _pad_rows(x, n_cap, fill):
+    x = np.asarray(x)
+    out = np.full((n_cap,) + x.shape[1:], fill, dtype=x.dtype)
+    out[: x.shape[0]] = x
+    return out
+
+
+def apply_voxel_updates(m: OccupancyMap, words, deltas, valid=None) -> OccupancyMap:
+    """Add log-odds ``deltas (n,)`` to the finest voxels ``words (n, 2)`` with OctoMap's
+    per-update clamping (``updateNodeLogOdds``), in row order for repeated voxels.
+
+    Unknown voxels start at 0; a voxel inside a coarse (pruned) leaf splits that leaf
+    locally (thesis §5.2.3 case 3: siblings along the path inherit the leaf's value) and the
+    result is pruned maximally. Capacity grows to the next bucket when needed.
+    """
+    deltas = jnp.asarray(deltas, jnp.float32).reshape(-1)
+    n = deltas.shape[0]
+    valid = jnp.ones((n,), bool) if valid is None else jnp.asarray(valid, bool).reshape(-1)
+    return _apply(m, words, deltas, valid)
+
+
+def update_points(m: OccupancyMap, points, occupied) -> OccupancyMap:
+    """OctoMap ``updateNode(point, occupied)`` for one point ``(3,)`` or many ``(n, 3)`` in
+    order: a hit adds ``hit_log_odds``, a miss ``miss_log_odds``, clamped after every update,
+    then pruned. ``occupied`` is a bool or ``(n,)`` bools. Raises ``ValueError`` for points
+    outside the key range."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    occ = np.broadcast_to(np.asarray(occupied, dtype=bool).reshape(-1), (pts.shape[0],))
+    keys = morton.coords_to_keys(pts, m.resolution, name="points")
+    n_cap = bucket_capacity(pts.shape[0], 64)
+    words = _pad_rows(morton.split_codes(morton.keys_to_codes(keys)), n_cap, 0)
+    p = m.params
+    deltas = jnp.where(jnp.asarray(_pad_rows(occ, n_cap, False)), p.hit_log_odds, p.miss_log_odds)
+    valid = _pad_rows(np.ones(pts.shape[0], bool), n_cap, False)
+    return apply_voxel_updates(m, words, deltas, valid)
+
+
+def from_voxels(centers, log_odds, resolution: float, depth: int = _D,
+                params: OccupancyParams | None = None, prune_result: bool = True) -> OccupancyMap:
+    """Build a map from voxel centres ``(n, 3)`` [m] and ``log_odds (n,)``: each point sets the
+    depth-``depth`` node containing it; duplicates are summed, then clamped and (by default)
+    pruned maximally."""
+    params = OccupancyParams() if params is None else params
+    pts = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    values = np.broadcast_to(np.asarray(log_odds, np.float32).reshape(-1), (pts.shape[0],))
+    if not 0 <= int(depth) <= _D:
+        raise ValueError(f"depth must lie in 0..16, got {depth}")
+    if not np.all(np.isfinite(values)):
+        raise ValueError("log_odds must be finite")
+    keys = morton.coords_to_keys(pts, resolution, name="centers")
+    shift = np.uint64(3 * (_D - int(depth)))
+    codes = (morton.keys_to_codes(keys) >> shift) << shift
+    uniq, inverse = np.unique(codes, return_inverse=True)
+    sums = np.bincount(inverse.reshape(-1), weights=values.astype(np.float64), minlength=uniq.size)
+    lo = float(np.asarray(params.clamp_min_log_odds))
+    hi = float(np.asarray(params.clamp_max_log_odds))
+    sums = np.clip(sums.astype(np.float32), np.float32(lo), np.float32(hi))
+    m = _build(morton.split_codes(uniq), np.full(uniq.size, int(depth), np.int32), sums,
+               resolution, params, bucket_capacity(uniq.size))
+    return prune(m) if prune_result else m
