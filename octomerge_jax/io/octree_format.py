@@ -1,0 +1,611 @@
+"""OctoMap 1.10 ``.bt`` / ``.ot`` files and ``octomap_msgs/Octomap`` payloads, byte-exact.
+
+Authority: OctoMap's source (``src/AbstractOcTree.cpp``, ``src/AbstractOccupancyOcTree.cpp``,
+``include/octomap/OccupancyOcTreeBase.hxx``, ``OcTreeBaseImpl.hxx``, ``src/ColorOcTree.cpp``)
+and ``octomap_msgs/include/octomap_msgs/conversions.h``.
+
+**Header** (both formats; ``\\n`` line ends)::
+
+    # Octomap OcTree binary file        (.bt)   /   # Octomap OcTree file   (.ot)
+    # (feel free to add / change comments, but leave the first line as it is!)
+    #
+    id OcTree
+    size <nodes>                         OctoMap size(): every node, inner and root included
+    res <resolution>                     C++ ostream default = printf "%g"
+    data
+
+Read like ``AbstractOcTree::readHeader``: whitespace-separated tokens, ``#`` comments and
+unknown keywords skip to the end of the line, ``data`` ends the header after its line.
+
+**.bt body** (``writeBinaryNode``): for each *inner* node in pre-order, two bytes holding a
+2-bit state per child (0 unknown, 1 free leaf, 2 occupied leaf, 3 inner). Writing applies
+OctoMap's ``toMaxLikelihood()`` and ``prune()`` first (the latter stops at the first depth
+where nothing prunes and never prunes the root). Reading gives free leaves the clamping
+minimum and occupied leaves the clamping maximum of ``params`` (``readBinaryNode``).
+
+**.ot body** (``writeNodesRecurs``): for every node in pre-order its payload, then a child
+mask byte. Payload: ``OcTree`` and ``OcTreeStamped`` a float32 log-odds (OctoMap does not
+serialise the stamp), ``ColorOcTree`` a float32 log-odds and r, g, b bytes (colour is
+dropped on reading; our writer writes ``OcTree``). Inner nodes are written as the max of
+their children (``updateInnerOccupancy``); reading keeps the leaves' values verbatim and
+drops inner values, since a map is its leaves.
+
+**Childless root.** OctoMap never prunes the root, so a tree it built by updates always has
+children under the root. A root without children only comes from deleting every leaf
+(octomap#106; ``size()`` is then stale and OctoMap's own reader reports a size mismatch for
+``.bt``) and is written as ``00 00`` (``.bt``) or value + mask 0 (``.ot``). OctoMap's readers
+then report one 2^16-voxel leaf (clamping max for ``.bt``, the stale inner value for ``.ot``)
+that no sensor ever measured; reading it as one would turn all unknown space occupied in a
+merge. We read a childless root as an **empty map**. Conversely our writers never emit a
+childless root: a map holding one depth-0 leaf is written as its 8 depth-1 children, the
+tree OctoMap itself would keep (it never prunes the root).
+
+**Messages.** ``octomap_msgs/Octomap`` carries ``binary``, ``id``, ``resolution`` as fields
+and only the body in ``data`` (``binaryMapToMsg`` = ``writeBinaryData``, ``fullMapToMsg`` =
+``writeData``); an empty tree gives empty data. ``to_bytes(m, binary)`` gives that body
+(for ``binary=True`` after maximum likelihood + prune, the compact form the octomap_msgs
+docs recommend; the same bytes as the body of ``save(m, "x.bt")``); ``from_bytes`` reads a
+body given ``binary`` and ``resolution``, or a whole file image.
+
+**Bad input** raises ``MapFormatError`` (a ``ValueError``) naming the source and byte
+offset: truncated data, a corrupt header, child flags that describe no valid depth-16
+tree, an inner ``.bt`` node without children, NaN log-odds, a header ``size`` that differs
+from the nodes read, an unsupported id, or bytes after the tree (``strict=False`` accepts
+the last three like OctoMap, which ignores them for ``.ot`` and message payloads).
+Nothing is allocated from a header's claims; all arrays are sized by the data present.
+"""
+
+from __future__ import annotations
+
+import array
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import map as _map
+from .. import morton
+from .._fileutil import atomic_output
+from . import _preorder
+from .errors import MapFormatError
+
+__all__ = [
+    "BINARY_FILE_HEADER",
+    "FULL_FILE_HEADER",
+    "Header",
+    "load",
+    "save",
+    "from_bytes",
+    "to_bytes",
+    "from_message",
+    "to_message_fields",
+    "read_header",
+    "format_resolution",
+    "num_nodes",
+    "max_likelihood_prune",
+]
+
+BINARY_FILE_HEADER = b"# Octomap OcTree binary file"
+FULL_FILE_HEADER = b"# Octomap OcTree file"
+_COMMENT = b"# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
+BYTES_SOURCE = "<bytes>"
+
+#: ``.ot`` node payload bytes (before the child mask) per supported tree id.
+_OT_PAYLOAD = {"OcTree": 4, "OcTreeStamped": 4, "ColorOcTree": 7}
+_WS = b" \t\n\r\v\f"
+_MAX_TOKEN = 4096
+_TOKEN_RE = re.compile(rb"[^ \t\n\r\v\f]{0,%d}" % _MAX_TOKEN)
+#: Headers are ~130 bytes; we parse at most this much of a file as header.
+_HEADER_WINDOW = 1 << 16
+
+# 2-bit child states of a .bt record word: bit j of INNER/OCC/FREE set iff child j is such.
+_w = np.arange(1 << 16, dtype=np.uint32)
+_states = (_w[:, None] >> (2 * np.arange(8, dtype=np.uint32))) & 3
+_weights = (1 << np.arange(8)).astype(np.uint32)
+_BT_INNER = ((_states == 3) @ _weights).astype(np.uint8)
+_BT_OCC = ((_states == 2) @ _weights).astype(np.uint8)
+_BT_FREE = ((_states == 1) @ _weights).astype(np.uint8)
+del _w, _states, _weights
+
+
+@dataclass(frozen=True)
+class Header:
+    """A parsed OctoMap file header.
+
+    ``binary`` (``.bt``) or full (``.ot``); ``tree_id`` as written (``"1"`` -> ``"OcTree"``);
+    ``size`` the claimed node count; ``resolution`` metres; ``data_offset`` the first body
+    byte; ``legacy`` for the old headerless ``.bt`` layout.
+    """
+
+    binary: bool
+    tree_id: str
+    size: int
+    resolution: float
+    data_offset: int
+    legacy: bool = False
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def format_resolution(resolution: float) -> str:
+    """``res`` as C++ ``ostream << double`` prints it (``%g``: 6 significant digits)."""
+    return f"{float(resolution):g}"
+
+
+def _header_bytes(binary: bool, tree_id: str, size: int, resolution: float) -> bytes:
+    first = BINARY_FILE_HEADER if binary else FULL_FILE_HEADER
+    tail = f"id {tree_id}\nsize {int(size)}\nres {format_resolution(resolution)}\ndata\n"
+    return first + b"\n" + _COMMENT + tail.encode("ascii")
+
+
+def _as_uint8(data) -> np.ndarray:
+    """bytes-like, ``array('b')``, int8/uint8 arrays or a list of ints (ROS ``int8[]``)."""
+    if isinstance(data, np.ndarray):
+        if data.dtype not in (np.uint8, np.int8):
+            raise TypeError(f"data must hold bytes (int8/uint8), got dtype {data.dtype}")
+        return np.ascontiguousarray(data).reshape(-1).view(np.uint8)
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        return np.frombuffer(data, dtype=np.uint8)
+    if isinstance(data, array.array):
+        return np.frombuffer(data, dtype=np.uint8) if data.itemsize == 1 else \
+            np.asarray(data, dtype=np.int16).astype(np.uint8)
+    values = np.asarray(list(data), dtype=np.int64)
+    if values.size and (values.min() < -128 or values.max() > 255):
+        raise ValueError("data values must be bytes (-128..255)")
+    return values.astype(np.uint8)
+
+
+def _skip_ws(buf: bytes, pos: int) -> int:
+    n = len(buf)
+    while pos < n and buf[pos] in _WS:
+        pos += 1
+    return pos
+
+
+def _token(buf: bytes, pos: int, source) -> tuple[bytes, int, int]:
+    """Next whitespace-delimited token: (token, start, end). Empty token at end of data."""
+    start = _skip_ws(buf, pos)
+    m = _TOKEN_RE.match(buf, start)
+    end = m.end()
+    if end - start >= _MAX_TOKEN:
+        raise MapFormatError(source, start, "header token too long (not an OctoMap header)")
+    return buf[start:end], start, end
+
+
+def _skip_line(buf: bytes, pos: int) -> int:
+    nl = buf.find(b"\n", pos)
+    return len(buf) if nl < 0 else nl + 1
+
+
+def _parse_header(buf: bytes, source) -> Header:
+    """Parse a file image's header (``AbstractOcTree::readHeader`` semantics)."""
+    if buf.startswith(BINARY_FILE_HEADER):
+        binary = True
+    elif buf.startswith(FULL_FILE_HEADER):
+        binary = False
+    else:
+        raise MapFormatError(source, 0, "not an OctoMap file: the first line must start with "
+                             f"{BINARY_FILE_HEADER.decode()!r} or {FULL_FILE_HEADER.decode()!r}")
+    pos = _skip_line(buf, 0)
+    tree_id, size, res = None, 0, 0.0
+    while True:
+        tok, start, pos = _token(buf, pos, source)
+        if not tok:
+            raise MapFormatError(source, start, "header ends without a 'data' line "
+                                 "(truncated or not an OctoMap file)")
+        if tok == b"data":
+            pos = _skip_line(buf, pos)
+            break
+        if tok.startswith(b"#"):
+            pos = _skip_line(buf, pos)
+        elif tok in (b"id", b"size", b"res"):
+            val, vstart, pos = _token(buf, pos, source)
+            if not val:
+                raise MapFormatError(source, vstart, f"header '{tok.decode()}' has no value")
+            if tok == b"id":
+                try:
+                    tree_id = val.decode("ascii")
+                except UnicodeDecodeError:
+                    raise MapFormatError(source, vstart, "header id is not ASCII") from None
+            elif tok == b"size":
+                if not val.isdigit() or len(val) > 12:
+                    raise MapFormatError(source, vstart, f"header size {val[:40]!r} is not a "
+                                         "node count")
+                size = int(val)
+            else:
+                try:
+                    res = float(val.decode("ascii"))
+                except (UnicodeDecodeError, ValueError):
+                    raise MapFormatError(source, vstart, f"header res {val[:40]!r} is not a "
+                                         "number") from None
+                if not (math.isfinite(res) and res > 0):
+                    raise MapFormatError(source, vstart, f"header res {res!r} must be a "
+                                         "positive resolution in metres")
+        else:  # unknown keyword: OctoMap warns and skips the line
+            pos = _skip_line(buf, pos)
+    if not tree_id:
+        raise MapFormatError(source, pos, "header has no 'id'")
+    if res <= 0:
+        raise MapFormatError(source, pos, "header has no positive 'res'")
+    if tree_id == "1":  # deprecated id, rewritten by OctoMap
+        tree_id = "OcTree"
+    return Header(binary, tree_id, size, res, pos)
+
+
+def _parse_legacy(buf: bytes, source) -> Header:
+    """Old headerless ``.bt``: int32 tree type 3, float64 resolution, uint32 size."""
+    if len(buf) < 16 or int(np.frombuffer(buf, "<i4", 1, 0)[0]) != 3:
+        raise MapFormatError(source, 0, "not an OctoMap binary file: the first line does not "
+                             f"start with {BINARY_FILE_HEADER.decode()!r} and it is no legacy "
+                             "binary OcTree (type 3)")
+    res = float(np.frombuffer(buf, "<f8", 1, 4)[0])
+    if not (math.isfinite(res) and res > 0):
+        raise MapFormatError(source, 4, f"legacy header resolution {res!r} is not positive")
+    size = int(np.frombuffer(buf, "<u4", 1, 12)[0])
+    return Header(True, "OcTree", size, res, 16, legacy=True)
+
+
+def _check_resolution(resolution, name="resolution") -> float:
+    try:
+        r = float(resolution)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number of metres, got {resolution!r}") from None
+    if not (math.isfinite(r) and r > 0):
+        raise ValueError(f"{name} must be a positive finite number of metres, got {resolution!r}")
+    return r
+
+
+def _params_f32(params) -> dict[str, np.float32]:
+    host = (params if params is not None else _map.OccupancyParams()).host()
+    return {k: np.float32(v) for k, v in host.items()}
+
+
+# ----------------------------------------------------------------------------- decoding
+
+
+def _stream_error(source, start: int, rec_size: int, total: int, err) -> MapFormatError:
+    return MapFormatError(source, min(start + err.record * rec_size, total), err.reason)
+
+
+def _decode_bt(buf: np.ndarray, start: int, source, params):
+    """Body of a ``.bt`` at ``buf[start:]`` -> (codes, depths, log_odds, nodes, end)."""
+    total = buf.size
+    n_rec = (total - start) // 2
+    if n_rec == 0:
+        raise MapFormatError(source, total, "data ends before the root node: truncated")
+    words = buf[start: start + 2 * n_rec].view("<u2")
+    inner = _BT_INNER[words]
+    try:
+        length, h = _preorder.tree_length(_preorder.POPCOUNT8[inner])
+    except _preorder.StreamError as err:
+        raise _stream_error(source, start, 2, total, err) from None
+    words, inner = words[:length], inner[:length]
+    end = start + 2 * length
+    if length == 1 and words[0] == 0:
+        # childless root: an emptied tree (see module docstring)
+        return *_empty_leaves(), 1, end
+    empty_rec = np.flatnonzero(words == 0)
+    if empty_rec.size:
+        raise MapFormatError(source, start + 2 * int(empty_rec[0]),
+                             "an inner node has no children (corrupt child flags)")
+    try:
+        depth, code = _preorder.breadth_first(inner, _preorder.next_drop(h), max_depth=15)
+    except _preorder.StreamError as err:
+        raise _stream_error(source, start, 2, total, err) from None
+    occ, free = _BT_OCC[words], _BT_FREE[words]
+    slots = np.unpackbits((occ | free)[:, None], axis=1, bitorder="little").astype(bool)
+    rec, slot = np.nonzero(slots)
+    shift = (3 * (15 - depth[rec].astype(np.int64))).astype(np.uint64)
+    codes = code[rec] | (slot.astype(np.uint64) << shift)
+    depths = depth[rec] + np.uint8(1)
+    p = _params_f32(params)
+    is_occ = ((occ[rec] >> slot.astype(np.uint8)) & 1).astype(bool)
+    log_odds = np.where(is_occ, p["clamp_max_log_odds"], p["clamp_min_log_odds"])
+    order = np.argsort(codes, kind="stable")
+    nodes = length + int(rec.size)
+    return codes[order], depths[order], log_odds[order].astype(np.float32), nodes, end
+
+
+def _decode_ot(buf: np.ndarray, start: int, source, tree_id: str):
+    """Body of a ``.ot`` at ``buf[start:]`` -> (codes, depths, log_odds, nodes, end)."""
+    if tree_id not in _OT_PAYLOAD:
+        raise MapFormatError(source, None, f"unsupported octree id {tree_id!r}: can read "
+                             f"{', '.join(sorted(_OT_PAYLOAD))} (.ot) and any occupancy "
+                             "tree as .bt")
+    rec_size = _OT_PAYLOAD[tree_id] + 1
+    total = buf.size
+    n_rec = (total - start) // rec_size
+    if n_rec == 0:
+        raise MapFormatError(source, total, "data ends before the root node: truncated")
+    recs = buf[start: start + rec_size * n_rec].reshape(n_rec, rec_size)
+    mask = recs[:, rec_size - 1]
+    try:
+        length, h = _preorder.tree_length(_preorder.POPCOUNT8[mask])
+    except _preorder.StreamError as err:
+        raise _stream_error(source, start, rec_size, total, err) from None
+    end = start + rec_size * length
+    if length == 1:  # childless root: an emptied tree (see module docstring)
+        return *_empty_leaves(), 1, end
+    mask = mask[:length]
+    try:
+        depth, code = _preorder.breadth_first(mask, _preorder.next_drop(h), max_depth=16)
+    except _preorder.StreamError as err:
+        raise _stream_error(source, start, rec_size, total, err) from None
+    leaf = np.flatnonzero(mask == 0)
+    log_odds = np.ascontiguousarray(recs[leaf, :4]).view("<f4").reshape(-1)
+    bad = np.flatnonzero(np.isnan(log_odds))
+    if bad.size:
+        raise MapFormatError(source, start + rec_size * int(leaf[bad[0]]),
+                             "a leaf's log-odds is NaN")
+    return code[leaf], depth[leaf], log_odds.astype(np.float32), length, end
+
+
+def _empty_leaves():
+    return np.zeros(0, np.uint64), np.zeros(0, np.uint8), np.zeros(0, np.float32)
+
+
+def _decode_body(buf, start, source, binary, tree_id, params, strict, claimed_size=None):
+    if binary:
+        codes, depths, log_odds, nodes, end = _decode_bt(buf, start, source, params)
+    else:
+        codes, depths, log_odds, nodes, end = _decode_ot(buf, start, source, tree_id)
+    if strict and end != buf.size:
+        raise MapFormatError(source, end, f"{buf.size - end} unexpected bytes after the tree")
+    if strict and claimed_size is not None and claimed_size != nodes:
+        raise MapFormatError(source, None, f"size mismatch: the header claims {claimed_size} "
+                             f"nodes, the data holds {nodes}")
+    return codes, depths, log_odds
+
+
+def _decode_image(buf: np.ndarray, source, params, strict, allow_legacy: bool):
+    raw = buf[:_HEADER_WINDOW].tobytes()
+    if allow_legacy and not raw.startswith(BINARY_FILE_HEADER) and \
+            not raw.startswith(FULL_FILE_HEADER):
+        header = _parse_legacy(raw, source)
+    else:
+        header = _parse_header(raw, source)
+    if header.size == 0:
+        # OctoMap reads no body for size 0 (an empty tree is written as a bare header).
+        if strict and header.data_offset != buf.size:
+            raise MapFormatError(source, header.data_offset,
+                                 f"{buf.size - header.data_offset} unexpected bytes after an "
+                                 "empty tree (header size 0)")
+        return header, _empty_leaves()
+    leaves = _decode_body(buf, header.data_offset, source, header.binary, header.tree_id,
+                          params, strict, claimed_size=header.size)
+    return header, leaves
+
+
+def _to_map(leaves, resolution, params):
+    codes, depths, log_odds = leaves
+    return _map.from_leaves(codes, depths, log_odds, resolution, params=params, check=False)
+
+
+# ----------------------------------------------------------------------------- encoding
+
+
+def max_likelihood_prune(codes, depths, log_odds, params=None):
+    """OctoMap ``toMaxLikelihood()`` then ``prune()`` on host leaf arrays (sorted codes).
+
+    Every leaf becomes clamping max if ``log_odds >= threshold`` else clamping min; then for
+    depth 15 down to 1, each node whose 8 children are leaves of equal value collapses,
+    stopping at the first depth where nothing collapses (the root is never pruned).
+    Returns ``(codes, depths, log_odds)``.
+    """
+    p = _params_f32(params)
+    occupied = np.asarray(log_odds, np.float32) >= p["occupancy_threshold_log_odds"]
+    values = np.where(occupied, p["clamp_max_log_odds"], p["clamp_min_log_odds"])
+    codes = np.asarray(codes, np.uint64)
+    depths = np.asarray(depths).astype(np.uint8)  # a copy we modify
+    removed = np.uint8(255)
+    for d in range(15, 0, -1):
+        idx = np.flatnonzero(depths == d + 1)
+        if idx.size < 8:
+            break
+        parent = codes[idx] & _preorder.MASKS[d]
+        new_run = np.empty(idx.size, bool)
+        new_run[0] = True
+        np.not_equal(parent[1:], parent[:-1], out=new_run[1:])
+        starts = np.flatnonzero(new_run)
+        run_len = np.diff(np.append(starts, idx.size))
+        cand = starts[run_len == 8]
+        if cand.size == 0:
+            break
+        block = idx[cand[:, None] + np.arange(8)]
+        vals = values[block]
+        full = np.all(vals == vals[:, :1], axis=1)  # exact float ==, like OcTreeNode::==
+        if not full.any():
+            break
+        block = block[full]
+        depths[block[:, 0]] = d
+        depths[block[:, 1:]] = removed
+    keep = depths != removed
+    return codes[keep], depths[keep], values[keep]
+
+
+def _expand_root(codes, depths, values):
+    """A depth-0 leaf -> its 8 depth-1 children (OctoMap keeps the root an inner node)."""
+    if depths.size and depths[0] == 0:
+        codes = np.arange(8, dtype=np.uint64) << np.uint64(45)
+        return codes, np.ones(8, np.uint8), np.repeat(values[:1], 8)
+    return codes, depths, values
+
+
+def _host_leaves(occupancy_map):
+    n = occupancy_map.num_leaves
+    codes = morton.join_codes(np.asarray(occupancy_map.code)[:n])
+    depths = np.asarray(occupancy_map.depth)[:n].astype(np.uint8)
+    log_odds = np.asarray(occupancy_map.log_odds)[:n].astype(np.float32)
+    return codes, depths, log_odds
+
+
+def _encode(occupancy_map, binary: bool) -> tuple[bytes, int]:
+    """(body bytes, node count) of a map."""
+    if not isinstance(occupancy_map, _map.OccupancyMap):
+        raise TypeError(f"expected an OccupancyMap, got {type(occupancy_map).__name__}")
+    codes, depths, log_odds = _host_leaves(occupancy_map)
+    if binary:
+        p = _params_f32(occupancy_map.params)
+        codes, depths, values = max_likelihood_prune(codes, depths, log_odds,
+                                                     occupancy_map.params)
+        codes, depths, values = _expand_root(codes, depths, values)
+        body, nodes = _preorder.encode_bt(codes, depths,
+                                          values >= p["occupancy_threshold_log_odds"])
+    else:
+        codes, depths, log_odds = _expand_root(codes, depths, log_odds)
+        body, nodes = _preorder.encode_ot(codes, depths, log_odds)
+    return body.tobytes(), nodes
+
+
+# ----------------------------------------------------------------------------- public API
+
+
+def _format_of(path: Path) -> bool:
+    """True for ``.bt``, False for ``.ot``; ``ValueError`` otherwise."""
+    suffix = path.suffix.lower()
+    if suffix == ".bt":
+        return True
+    if suffix == ".ot":
+        return False
+    raise ValueError(f"{path}: unknown map format {path.suffix!r}; use .bt (binary, maximum "
+                     "likelihood) or .ot (full log-odds)")
+
+
+def read_header(path) -> Header:
+    """The header of an OctoMap file (no body is read beyond the first 64 KiB)."""
+    path = Path(path)
+    is_bt = _format_of(path)
+    with open(path, "rb") as f:
+        raw = f.read(_HEADER_WINDOW)
+    if is_bt and not raw.startswith(BINARY_FILE_HEADER) and not raw.startswith(FULL_FILE_HEADER):
+        return _parse_legacy(raw, path)
+    return _parse_header(raw, path)
+
+
+def load(path, *, params: _map.OccupancyParams | None = None,
+         strict: bool = True) -> _map.OccupancyMap:
+    """Read an OctoMap ``.bt`` or ``.ot`` file into an ``OccupancyMap``.
+
+    The extension must be ``.bt`` or ``.ot``; the format is taken from the file's first line
+    (either header is accepted under either extension; a ``.bt`` without a header is tried
+    as OctoMap's legacy binary layout). ``params`` (OctoMap defaults if None) sets the
+    values of ``.bt`` leaves (free = clamping min, occupied = clamping max) and becomes the
+    map's parameters; ``.ot`` leaves keep their stored log-odds. ``ColorOcTree`` colour and
+    ``OcTreeStamped`` times are not kept (the latter are not in the file). Leaves keep
+    their depth; nothing is pruned.
+
+    Raises ``MapFormatError`` (naming the path and byte offset) for bad data; see the
+    module docstring. ``strict=False`` tolerates trailing bytes and a wrong header size.
+    """
+    path = Path(path)
+    is_bt = _format_of(path)
+    buf = np.fromfile(path, dtype=np.uint8)
+    header, leaves = _decode_image(buf, path, params, strict, allow_legacy=is_bt)
+    return _to_map(leaves, header.resolution, params)
+
+
+def save(occupancy_map: _map.OccupancyMap, path) -> None:
+    """Write a map as ``.bt`` or ``.ot`` (by extension), byte-identical to OctoMap 1.10's
+    ``writeBinary`` / ``write`` of the same tree, atomically (temp file + rename).
+
+    ``.bt`` stores maximum likelihood only: leaves become free or occupied by the map's
+    occupancy threshold, then OctoMap's prune rule applies. ``.ot`` stores every leaf's
+    log-odds and inner nodes as the max of their children.
+    """
+    path = Path(path)
+    binary = _format_of(path)
+    data = to_bytes(occupancy_map, binary=binary, header=True)
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(data)
+
+
+def to_bytes(occupancy_map: _map.OccupancyMap, binary: bool = True, *,
+             header: bool = False) -> bytes:
+    """Serialise a map as an ``octomap_msgs/Octomap`` payload (``header=False``, the
+    message's ``data`` field) or as a whole file image (``header=True``).
+
+    ``binary=True``: the ``.bt`` body after maximum likelihood + OctoMap's prune
+    (``binaryMapToMsg`` of a tree after ``toMaxLikelihood(); prune()``); ``binary=False``:
+    the ``.ot`` body (``fullMapToMsg``). The message's other fields are ``binary``,
+    ``id="OcTree"`` and ``resolution=map.resolution`` (see ``to_message_fields``). An
+    empty map gives an empty payload.
+    """
+    body, nodes = _encode(occupancy_map, bool(binary))
+    if not header:
+        return body
+    return _header_bytes(bool(binary), "OcTree", nodes, occupancy_map.resolution) + body
+
+
+def from_bytes(data, binary: bool | None = None, resolution: float | None = None,
+               id: str = "OcTree", *, params: _map.OccupancyParams | None = None,
+               strict: bool = True, source: str = BYTES_SOURCE) -> _map.OccupancyMap:
+    """Read a map from an ``octomap_msgs/Octomap`` payload or a whole file image.
+
+    Args:
+      data: bytes-like, ``array('b')``, an int8/uint8 array, or a list of ints (a ROS
+        ``int8[]`` field).
+      binary: the message's ``binary`` field (``.bt`` body if True, ``.ot`` body if False).
+        Not needed for a file image (data starting with an OctoMap header line).
+      resolution: the message's ``resolution`` [m]; required for a payload.
+      id: the message's ``id``; selects the ``.ot`` node layout (``OcTree``,
+        ``OcTreeStamped``, ``ColorOcTree``); ignored for binary data, like OctoMap.
+      params: occupancy parameters (``.bt`` leaf values); OctoMap defaults if None.
+      strict: refuse bytes after the tree (and, for an image, a wrong header size).
+      source: the name used in error messages.
+
+    An empty payload is an empty map (OctoMap writes no body for an empty tree). For a
+    file image, ``binary``/``resolution`` must be None or agree with its header.
+    """
+    buf = _as_uint8(data)
+    head = buf[: len(BINARY_FILE_HEADER)].tobytes()
+    if head.startswith(BINARY_FILE_HEADER) or head.startswith(FULL_FILE_HEADER):
+        header, leaves = _decode_image(buf, source, params, strict, allow_legacy=False)
+        if binary is not None and bool(binary) != header.binary:
+            raise ValueError(f"binary={binary!r} but the data is a "
+                             f"{'binary (.bt)' if header.binary else 'full (.ot)'} file image")
+        if resolution is not None and _check_resolution(resolution) != header.resolution:
+            raise ValueError(f"resolution={resolution!r} but the file header says "
+                             f"{header.resolution!r}")
+        return _to_map(leaves, header.resolution, params)
+    if binary is None:
+        raise ValueError("binary must be given for a message payload (data without an "
+                         "OctoMap header): True for .bt data, False for .ot data")
+    if resolution is None:
+        raise ValueError("resolution must be given for a message payload (data without an "
+                         "OctoMap header)")
+    res = _check_resolution(resolution)
+    if buf.size == 0:
+        return _map.empty(res, params=params)
+    if id == "1":
+        id = "OcTree"
+    leaves = _decode_body(buf, 0, source, bool(binary), str(id), params, strict)
+    return _to_map(leaves, res, params)
+
+
+def from_message(msg, *, params: _map.OccupancyParams | None = None,
+                 strict: bool = True) -> _map.OccupancyMap:
+    """Read an ``octomap_msgs/Octomap`` message (any object with ``binary``, ``id``,
+    ``resolution`` and ``data`` attributes, e.g. from rclpy or rospy)."""
+    return from_bytes(msg.data, binary=bool(msg.binary), resolution=float(msg.resolution),
+                      id=str(msg.id), params=params, strict=strict, source="<message>")
+
+
+def to_message_fields(occupancy_map: _map.OccupancyMap, binary: bool = True) -> dict:
+    """Fields of an ``octomap_msgs/Octomap`` message for a map (fill in ``header``
+    yourself): ``{"binary", "id", "resolution", "data"}``, ``data`` an ``array('b')`` as
+    rclpy's ``int8[]`` accepts, e.g. ``Octomap(header=h, **to_message_fields(m))``."""
+    payload = to_bytes(occupancy_map, binary=binary)
+    return {"binary": bool(binary), "id": "OcTree",
+            "resolution": float(occupancy_map.resolution),
+            "data": array.array("b", payload)}
+
+
+def num_nodes(occupancy_map: _map.OccupancyMap) -> int:
+    """OctoMap ``size()`` of the tree holding exactly this map's leaves (inner nodes and
+    root included; 0 for an empty map). Host-side; ``tree.num_nodes`` is the jitted one."""
+    codes, depths, _ = _host_leaves(occupancy_map)
+    return _preorder.num_nodes(codes, depths)
