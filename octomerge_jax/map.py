@@ -189,6 +189,8 @@ def _check_resolution(resolution) -> float:
 def _build(words, depths, log_odds, resolution, params, capacity) -> OccupancyMap:
     n = int(words.shape[0])
     cap = bucket_capacity(n) if capacity is None else int(capacity)
+    if cap < n:
+        raise ValueError(f"capacity {cap} is smaller than the {n} leaves")
     code = np.zeros((cap, 2), np.int32)
     code[:, 0] = morton.SENTINEL_HI
     code[:n] = words

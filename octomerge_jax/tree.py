@@ -279,22 +279,21 @@ def _plan_updates(m: OccupancyMap, words, valid):
     known = known & valid_sorted
     leaf_depth = jnp.where(known, m.depth[row], _D)
     # Path nodes: ancestors of unique voxels strictly below their coarse leaf. Entry (j, l)
-    # stands for the level-(l-1) ancestor of voxel j when j is the first voxel under it.
+    # stands for the level-(l-1) ancestor of voxel j when j is the first voxel under it; its
+    # ``mask`` has a bit per child (level l) that holds an updated voxel.
     levels = jnp.arange(1, _D + 1, dtype=jnp.int32)  # child level l = 1..16
-    first_parent = []
-    masks = []
-    for l in range(1, _D + 1):
+
+    def per_level(l):
         anc_parent = morton.truncate_words(code, l - 1)
         anc_child = morton.truncate_words(code, l)
         fp = ~morton.words_equal(anc_parent, _shift_down(anc_parent, 1, -1))
         fc = ~morton.words_equal(anc_child, _shift_down(anc_child, 1, -1))
         run = jnp.cumsum(fp) - 1
         bits = jnp.where(fc, jnp.left_shift(1, morton.child_index_words(code, l)), 0)
-        mask = jax.ops.segment_sum(bits, run, num_segments=n)[run]
-        first_parent.append(fp)
-        masks.append(mask)
-    first_parent = jnp.stack(first_parent, axis=1)  # (n, 16)
-    masks = jnp.stack(masks, axis=1).astype(jnp.int32)
+        return fp, jax.ops.segment_sum(bits, run, num_segments=n)[run]
+
+    first_parent, masks = jax.vmap(per_level, out_axes=1)(levels)  # (n, 16) each
+    masks = masks.astype(jnp.int32)
     active = first_parent & known[:, None] & (levels[None, :] > leaf_depth[:, None]) & valid_sorted[:, None]
     popcount = jnp.sum((masks[..., None] >> jnp.arange(8)) & 1, axis=-1)
     n_fill = jnp.where(active, 8 - popcount, 0).reshape(-1)
@@ -305,16 +304,12 @@ def _plan_updates(m: OccupancyMap, words, valid):
                 num_fill=jnp.sum(n_fill), num_unique=jnp.sum(unique), num_touched=jnp.sum(touched))
 
 
-@jax.jit
-def _count_updates(m: OccupancyMap, words, valid):
-    p = _plan_updates(m, words, valid)
-    return p["num_fill"], p["num_unique"], p["num_touched"]
+_plan_updates_jit = jax.jit(_plan_updates)
 
 
 @functools.partial(jax.jit, static_argnames=("fill_capacity", "capacity"))
-def _apply_updates(m: OccupancyMap, words, deltas, valid, fill_capacity: int, capacity: int):
-    p = _plan_updates(m, words, valid)
-    n = words.shape[0]
+def _apply_updates(m: OccupancyMap, p, deltas, fill_capacity: int, capacity: int):
+    n = deltas.shape[0]
     code = p["code"]
     base = jnp.where(p["known"], m.log_odds[p["row"]], jnp.float32(0))
     new_value = _fold_updates(p["seg_start"], p["valid"], deltas[p["order"]], base, p["known"],
@@ -364,10 +359,11 @@ def _apply(m: OccupancyMap, words, deltas, valid) -> OccupancyMap:
     n = words.shape[0]
     if n == 0:
         return m
-    num_fill, num_unique, num_touched = (int(x) for x in _count_updates(m, words, valid))
+    plan = _plan_updates_jit(m, words, valid)
+    num_fill, num_unique, num_touched = (int(plan[k]) for k in ("num_fill", "num_unique", "num_touched"))
     needed = m.num_leaves - num_touched + num_fill + num_unique
     cap = bucket_capacity(max(needed, m.capacity))
-    return _apply_updates(m, words, deltas, valid, bucket_capacity(num_fill, 256), cap)
+    return _apply_updates(m, plan, deltas, bucket_capacity(num_fill, 256), cap)
 
 
 def _pad_rows(x, n_cap, fill):

@@ -1,0 +1,75 @@
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from octomerge_jax import morton
+
+keys_strategy = arrays(np.uint16, st.tuples(st.integers(1, 64), st.just(3)))
+
+
+@settings(max_examples=30, deadline=None)
+@given(keys_strategy)
+def test_code_round_trips_host_and_device(keys):
+    codes = morton.keys_to_codes(keys)
+    assert np.array_equal(morton.codes_to_keys(codes), keys)
+    words = morton.split_codes(codes)
+    assert np.array_equal(morton.join_codes(words), codes)
+    device_words = np.asarray(morton.keys_to_words(jnp.asarray(keys.astype(np.int32))))
+    assert np.array_equal(device_words, words)
+    assert np.array_equal(np.asarray(morton.words_to_keys(jnp.asarray(words))), keys)
+
+
+def test_interleave_puts_x_in_the_lowest_bit_like_octomap_child_index():
+    keys = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0x8000, 0, 0]], np.uint16)
+    assert morton.keys_to_codes(keys).tolist() == [1, 2, 4, 1 << 45]
+
+
+def test_searchsorted_words_matches_numpy():
+    rng = np.random.default_rng(0)
+    codes = np.sort(rng.integers(0, 1 << 48, 500).astype(np.uint64))
+    queries = np.concatenate([codes[::5], rng.integers(0, 1 << 48, 100).astype(np.uint64)])
+    words = jnp.asarray(morton.split_codes(codes))
+    q = jnp.asarray(morton.split_codes(queries))
+    for side in ("left", "right"):
+        got = np.asarray(morton.searchsorted_words(words, q, side=side))
+        assert np.array_equal(got, np.searchsorted(codes, queries, side=side))
+
+
+@pytest.mark.parametrize("depth", range(17))
+def test_truncate_and_child_index(depth):
+    rng = np.random.default_rng(depth)
+    codes = rng.integers(0, 1 << 48, 200).astype(np.uint64)
+    w = jnp.asarray(morton.split_codes(codes))
+    shift = np.uint64(3 * (16 - depth))
+    assert np.array_equal(morton.join_codes(np.asarray(morton.truncate_words(w, depth))),
+                          (codes >> shift) << shift)
+    if depth > 0:
+        assert np.array_equal(np.asarray(morton.child_index_words(w, depth)), (codes >> shift) & np.uint64(7))
+
+
+@pytest.mark.parametrize("shift", [0, 3, 21, 24, 27, 45])
+def test_or_offset_words(shift):
+    k = np.random.default_rng(shift).integers(0, 1 << min(48 - shift, 30), 100)
+    got = morton.or_offset_words(jnp.zeros((100, 2), jnp.int32), jnp.asarray(k.astype(np.int32)), shift)
+    assert np.array_equal(morton.join_codes(np.asarray(got)), k.astype(np.uint64) << np.uint64(shift))
+
+
+def test_keys_follow_octomap_coord_to_key_and_key_to_coord():
+    res = 0.05
+    keys = morton.coords_to_keys([[0.0, -0.05, 1.0], [-1e-9, 0.049999, 1638.39]], res)
+    assert keys.tolist() == [[32768, 32767, 32788], [32767, 32768, 65535]]
+    # centre of a finest key and of its depth-14 ancestor (OctoMap keyToCoord(key, depth))
+    assert np.allclose(morton.keys_to_coords(keys[0], res), [0.025, -0.025, 1.025])
+    assert np.allclose(morton.keys_to_coords(keys[0], res, 14), [0.1, -0.1, 1.1])
+    assert np.allclose(morton.keys_to_coords(keys[0], res, 0), 0.0)
+
+
+@pytest.mark.parametrize("bad", [1638.4, -1638.41, np.nan, np.inf])
+def test_out_of_range_coordinate_names_the_value(bad):
+    with pytest.raises(ValueError, match="outside the OctoMap key range"):
+        morton.coords_to_keys([[0.0, 0.0, 0.0], [0.0, bad, 0.0]], 0.05)
+    _, ok = morton.points_to_keys(jnp.array([[0.0, bad, 0.0]], jnp.float32), 0.05)
+    assert not bool(ok[0])
