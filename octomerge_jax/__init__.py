@@ -1,8 +1,26 @@
-"""octomerge_jax: merge OctoMap occupancy octrees in JAX (Jessup 2013, done right)."""
+"""octomerge_jax: merge OctoMap occupancy octrees (.bt/.ot) in JAX.
+
+The method of J. Jessup, "Merging of Octree Based 3D Occupancy Grid Maps" (2013), on
+Morton-coded leaf arrays: jitted lookups, local expansion, trilinear resampling, log-odds
+fusion across depths and differentiable ICP.
+"""
 
 from importlib.metadata import PackageNotFoundError, version as _version
 
+from .examples import example_map
+from .io import MapFormatError, from_bytes, load, save, to_bytes
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
+from .tree import (
+    apply_voxel_updates,
+    clamp,
+    expand,
+    from_voxels,
+    lookup,
+    num_nodes,
+    prune,
+    to_max_likelihood,
+    update_points,
+)
 
 try:
     __version__ = _version("octomerge_jax")
@@ -11,9 +29,24 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 
 __all__ = [
     "Leaves",
+    "MapFormatError",
     "OccupancyMap",
     "OccupancyParams",
+    "apply_voxel_updates",
     "bucket_capacity",
+    "clamp",
     "empty",
+    "example_map",
+    "expand",
+    "from_bytes",
     "from_leaves",
+    "from_voxels",
+    "load",
+    "lookup",
+    "num_nodes",
+    "prune",
+    "save",
+    "to_bytes",
+    "to_max_likelihood",
+    "update_points",
 ]

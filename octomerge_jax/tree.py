@@ -425,4 +425,7 @@ def from_voxels(centers, log_odds, resolution: float, depth: int = _D,
     sums = np.clip(sums.astype(np.float32), np.float32(lo), np.float32(hi))
     m = _build(morton.split_codes(uniq), np.full(uniq.size, int(depth), np.int32), sums,
                resolution, params, bucket_capacity(uniq.size))
-    return prune(m) if prune_result else m
+    if not prune_result:
+        return m
+    pruned = prune(m)
+    return pruned.with_capacity(bucket_capacity(pruned.num_leaves))

@@ -1,0 +1,26 @@
+# One-command entry points (README quick start). Everything installs into ./.venv.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+EXTRAS ?= test
+
+.PHONY: setup demo test bench clean
+
+$(BIN)/.installed-$(EXTRAS): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --upgrade pip
+	$(BIN)/python -m pip install -e ".[$(EXTRAS)]"
+	touch $@
+
+setup: $(BIN)/.installed-$(EXTRAS)
+
+## demo: set up and run the main job on built-in data
+demo: setup
+	$(BIN)/octomerge demo --out-dir octomerge-demo
+
+## test: set up and run the test suite (what CI runs)
+test: setup
+	$(BIN)/python -m pytest -m "not slow"
+
+clean:
+	rm -rf $(VENV) octomerge-demo .pytest_cache .hypothesis
