@@ -1,0 +1,600 @@
+"""Map transformation by inverse mapping and trilinear resampling (thesis §3.2, §5.2.2, §6.4,
+Alg. 4-7, eqs. 3.6-3.13 and 5.13), done right, plus differentiable trilinear ``sample``.
+
+``transform_map(m, T_dst_src)`` expresses map ``m`` (built in frame ``src``) in frame ``dst`` at
+the same resolution. As in the thesis, every destination voxel centre ``x_n`` (depth 16) is
+mapped back, ``x_s = T_dst_src^-1 x_n`` (eq. 5.13), and gets a value only if ``x_s`` falls
+inside a known source leaf (of any depth). The value is interpolated from the 8 finest voxel
+centres that enclose ``x_s`` (eqs. 3.6-3.13; a neighbour inside a pruned, coarse leaf takes
+that leaf's value). Differences from the published code (Appendix A.2):
+
+- the true rigid inverse ``(R^T, -R^T t)``: A.2 builds row 3 of ``R`` from element (0,2)
+  instead of (2,1) and inverts the translation as ``-t``;
+- non-rigid, NaN or non-finite transforms raise ``ValueError`` on the host;
+- ``method="trilinear"`` leaves unknown neighbours out and renormalises the remaining weights,
+  so unknown space is not painted free (A.2 weighs them as p = 0, which the thesis saw as
+  "lower occupancy" in merged maps; that rule is kept as ``method="thesis"``);
+- output log-odds are finite and clamped to the map's ``[clamp_min, clamp_max]``;
+- where every contributing neighbour holds the same log-odds the output is that value
+  exactly (no float round trip through probability), so uniform regions stay prunable and
+  whole-voxel moves are exact permutations.
+
+**Hybrid dense/sparse, bounded memory.** The transformed bounding box is never materialised
+at the finest resolution (A.2 scans all of it). Instead, on the host, we list the *bricks*
+(depth-13 nodes, 8^3 voxels) the source covers, map each brick's cube forward and collect the
+destination bricks its image can touch (a brick-level bitmap). A jitted ``lax.scan`` then
+walks the destination bricks in fixed-size chunks. For each destination brick the inverse
+image of its 512 voxel centres plus interpolation neighbours lies inside a 3x3x3 window of
+source bricks (image width <= 7 sqrt(3) + 1 < 16 voxels), which are looked up once per brick
+(``searchsorted`` on the leaf codes for whole-brick leaves, on a dense brick table for bricks
+holding finer leaves); the 8 x 512 neighbour lookups are then plain array indexing. Each brick
+is pruned inside itself (levels 16 -> 13) before its leaves are appended to the output, so
+peak memory is the source, its dense brick table and the (brick-pruned) output; the final
+maximal prune is ``tree.prune``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import morton, tree
+from .map import OccupancyMap, bucket_capacity
+
+__all__ = [
+    "METHODS",
+    "SPACES",
+    "check_rigid_transform",
+    "transformed_bounds",
+    "transform_map",
+    "sample",
+]
+
+METHODS = ("trilinear", "nearest", "thesis")
+SPACES = ("probability", "log_odds")
+
+_D = morton.TREE_DEPTH
+_BRICK_DEPTH = 13  # a brick is a depth-13 node: 8^3 finest voxels
+_B = 8
+_BV = 512
+_KEY_MAX = 2 * morton.KEY_OFFSET
+_SNAP = 1e-5  # offsets closer than this (in voxels) to a lattice point are snapped (transform_map)
+_RIGID_TOL = 1e-5
+
+# corner c = bx + 2 by + 4 bz (x lowest, as OctoMap's child index); offset (bx, by, bz)
+_CORNERS = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.int32)
+
+
+def _local_offsets() -> np.ndarray:
+    """``(512, 3)`` int32 voxel offsets inside a brick, in local Morton order."""
+    l = np.arange(_BV)
+    return np.stack([_compact9(l >> a) for a in range(3)], axis=-1).astype(np.int32)
+
+
+def _compact9(v):
+    return (v & 1) | ((v >> 2) & 2) | ((v >> 4) & 4)
+
+
+_LOCAL = _local_offsets()
+
+
+# ----------------------------------------------------------------------------- host checks
+
+
+def check_rigid_transform(T, name: str = "T_dst_src") -> np.ndarray:
+    """Validate a rigid transform and return it as a ``(4, 4)`` float64 array.
+
+    Accepts ``(4, 4)`` homogeneous or ``(3, 4)`` ``[R | t]`` matrices (translation in metres).
+    Raises ``ValueError`` naming ``name`` if it has another shape, a NaN or infinite entry, a
+    homogeneous row other than ``[0, 0, 0, 1]``, or a rotation block that is not orthonormal
+    with determinant +1 (tolerance 1e-5: scale, shear and reflections are rejected).
+    """
+    A = np.asarray(T, dtype=np.float64)
+    if A.shape == (3, 4):
+        A = np.vstack([A, [0.0, 0.0, 0.0, 1.0]])
+    if A.shape != (4, 4):
+        raise ValueError(f"{name}: expected a (4, 4) or (3, 4) rigid transform, got shape {A.shape}")
+    if not np.all(np.isfinite(A)):
+        raise ValueError(f"{name}: contains NaN or infinite entries: {A.tolist()}")
+    if not np.allclose(A[3], [0.0, 0.0, 0.0, 1.0], atol=_RIGID_TOL, rtol=0.0):
+        raise ValueError(f"{name}: last row must be [0, 0, 0, 1], got {A[3].tolist()}")
+    R = A[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if err > _RIGID_TOL or abs(det - 1.0) > _RIGID_TOL:
+        raise ValueError(
+            f"{name}: rotation block is not a proper rotation (max |R^T R - I| = {err:.3g}, "
+            f"det = {det:.6g}); only rigid transforms are supported (no scale, shear or mirror)")
+    A[3] = [0.0, 0.0, 0.0, 1.0]
+    return A
+
+
+def _check_choice(value, choices, name):
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
+
+
+def transformed_bounds(m: OccupancyMap, T_dst_src) -> tuple[np.ndarray, np.ndarray]:
+    """Alg. 4: axis-aligned bounds ``(p_min, p_max)`` [m, float64 (3,)] in frame ``dst`` of
+    the source map's leaf extent (OctoMap ``getMetricMin/Max``) after ``T_dst_src``.
+
+    The 8 corners of the source bounding box are transformed and their extremes taken.
+    Raises ``ValueError`` for an empty map or an invalid transform.
+    """
+    T = check_rigid_transform(T_dst_src)
+    if m.num_leaves == 0:
+        raise ValueError("transformed_bounds: the map has no leaves")
+    lv = m.leaves()
+    lo = (lv.keys.astype(np.float64) - morton.KEY_OFFSET) * m.resolution
+    hi = lo + lv.sizes[:, None]
+    bmin, bmax = lo.min(axis=0), hi.max(axis=0)
+    corners = np.array([[bmax[0] if c & 1 else bmin[0], bmax[1] if c & 2 else bmin[1],
+                         bmax[2] if c & 4 else bmin[2]] for c in range(8)])
+    moved = corners @ T[:3, :3].T + T[:3, 3]
+    return moved.min(axis=0), moved.max(axis=0)
+
+
+# ----------------------------------------------------------------------------- interpolation
+
+
+def _logit(p):
+    return jnp.log(p) - jnp.log1p(-p)
+
+
+def _corner_weights(f):
+    """Trilinear weights (eqs. 3.6-3.13) of the 8 corners, ``f (..., 3)`` -> ``(..., 8)``."""
+    fx, fy, fz = f[..., 0:1], f[..., 1:2], f[..., 2:3]
+    c = jnp.asarray(_CORNERS, jnp.float32)
+    wx = jnp.where(c[:, 0] == 1, fx, 1.0 - fx)
+    wy = jnp.where(c[:, 1] == 1, fy, 1.0 - fy)
+    wz = jnp.where(c[:, 2] == 1, fz, 1.0 - fz)
+    return wx * wy * wz
+
+
+def _center_corner(f):
+    """Index (0..7) of the corner whose voxel contains the sample point (nearest centre)."""
+    b = (f >= 0.5).astype(jnp.int32)
+    return b[..., 0] + 2 * b[..., 1] + 4 * b[..., 2]
+
+
+def _mode_index(method: str, space: str) -> int:
+    """Traced selector of the blend rule (one compiled kernel serves every mode)."""
+    if method == "trilinear":
+        return 0 if space == "probability" else 1
+    return 2 if method == "nearest" else 3
+
+
+def _blend(lo8, known8, f, mode):
+    """Interpolate 8 neighbour log-odds ``lo8 (..., 8)`` (``known8`` marks known ones) at
+    offsets ``f (..., 3)`` in [0, 1) from corner 0 (eqs. 3.6-3.13).
+
+    ``mode`` (traced int, ``_mode_index``): 0 trilinear in probability, 1 trilinear in
+    log-odds (both leave unknown neighbours out and renormalise), 2 nearest, 3 thesis (unknown
+    neighbours weigh as probability 0, Appendix A.2). Returns ``(probability, log_odds,
+    center_known, exact)``: the blended value in both spaces (unclamped), whether the voxel
+    containing the point is known (thesis: only then is a destination voxel made) and
+    ``exact``, the log-odds to use where every contributing neighbour holds the same value
+    (NaN elsewhere) so such values stay bit-exact.
+    """
+    lo8 = jnp.where(known8, lo8, jnp.float32(0))
+    w = _corner_weights(f)
+    cc = _center_corner(f)
+    lo_c = jnp.take_along_axis(lo8, cc[..., None], axis=-1)[..., 0]
+    k_c = jnp.take_along_axis(known8, cc[..., None], axis=-1)[..., 0]
+    contributes = w > 0
+
+    def trilinear(in_log_odds):
+        def branch():
+            wk = jnp.where(known8, w, jnp.float32(0))
+            den = jnp.sum(wk, axis=-1)
+            ok = den > 0
+            safe = jnp.where(ok, den, jnp.float32(1))
+            if in_log_odds:
+                lo = jnp.where(ok, jnp.sum(wk * lo8, axis=-1) / safe, jnp.float32(0))
+                p = _probability(lo)
+            else:
+                p = jnp.where(ok, jnp.sum(wk * _probability(lo8), axis=-1) / safe, jnp.float32(0.5))
+                lo = _safe_logit(p)
+            same = jnp.all(~(contributes & known8) | (lo8 == lo_c[..., None]), axis=-1)
+            return p, lo, jnp.where(same, lo_c, jnp.nan)
+        return branch
+
+    def nearest():
+        return _probability(lo_c), lo_c, lo_c
+
+    def thesis():
+        p = jnp.sum(w * jnp.where(known8, _probability(lo8), jnp.float32(0)), axis=-1)
+        same = jnp.all(~contributes | (known8 & (lo8 == lo_c[..., None])), axis=-1)
+        return p, _safe_logit(p), jnp.where(same, lo_c, jnp.nan)
+
+    p, lo, exact = jax.lax.switch(mode, [trilinear(False), trilinear(True), nearest, thesis])
+    return p, lo, k_c, jnp.where(k_c, exact, jnp.nan)
+
+
+def _probability(log_odds):
+    """OctoMap ``probability(l) = 1 - 1 / (1 + e^l)`` in a form stable for large ``|l|``."""
+    return jax.nn.sigmoid(log_odds)
+
+
+def _safe_logit(p):
+    tiny = jnp.float32(1e-7)
+    return _logit(jnp.clip(p, tiny, 1.0 - tiny))
+
+
+# ----------------------------------------------------------------------------- sample
+
+
+def _split_points(points, resolution):
+    """Metric points -> (integer key of corner 0 ``(..., 3)`` int32, offsets ``f`` in [0, 1),
+    in-range mask). Centres sit at integer ``u = x / res - 0.5`` relative to key 32768, which
+    keeps float32 precision near the origin instead of near key 32768."""
+    u = points / jnp.float32(resolution) - jnp.float32(0.5)
+    base = jnp.floor(u)
+    f = u - jax.lax.stop_gradient(base)
+    finite = jnp.all(jnp.isfinite(u), axis=-1)
+    base = jnp.where(jnp.isfinite(base), base, 0.0)
+    base = jnp.clip(base, -morton.KEY_OFFSET - 2, morton.KEY_OFFSET + 1)
+    key0 = base.astype(jnp.int32) + morton.KEY_OFFSET
+    return key0, jnp.where(finite[..., None], f, 0.0), finite
+
+
+def _lookup_keys(m: OccupancyMap, keys):
+    """Log-odds and known flag of the leaves containing finest ``keys (..., 3)`` (any depth)."""
+    in_range = jnp.all((keys >= 0) & (keys < _KEY_MAX), axis=-1)
+    words = morton.keys_to_words(jnp.clip(keys, 0, _KEY_MAX - 1))
+    row, known = tree.lookup_words(m, words)
+    known = known & in_range
+    return jnp.where(known, m.log_odds[row], jnp.float32(0)), known
+
+
+@jax.jit
+def _sample(m: OccupancyMap, points, mode, log_odds_out):
+    key0, f, finite = _split_points(points, m.resolution)
+    keys = key0[..., None, :] + jnp.asarray(_CORNERS)
+    lo8, known8 = _lookup_keys(m, keys)
+    known8 = known8 & finite[..., None]
+    p, lo, center_known, _ = _blend(lo8, known8, f, mode)
+    return jnp.where(log_odds_out, lo, p), center_known
+
+
+def sample(m: OccupancyMap, points, *, space: str = "probability", method: str = "trilinear"):
+    """Interpolated occupancy at metric ``points (..., 3)`` [m, float32] in the map's frame.
+
+    Returns ``(value (...,) float32, known (...,) bool)``: ``value`` is a probability
+    (``space="probability"``, interpolated in probability as the thesis) or log-odds
+    (``space="log_odds"``); ``known`` says the voxel containing the point is known. The value
+    blends the 8 voxel centres around the point (eqs. 3.6-3.13) with ``method`` as in
+    ``transform_map``; where no weight falls on known data it is the neutral 0.5 / 0.
+    Values are not clamped (clamping is applied when a map is written).
+
+    Differentiable with respect to ``points`` (and so to a transform applied to them) for
+    ``"trilinear"`` and ``"thesis"``: the gradient is that of the trilinear weights, finite at
+    voxel centres; it is discontinuous across voxel faces where neighbours change.
+    """
+    _check_choice(space, SPACES, "space")
+    _check_choice(method, METHODS, "method")
+    pts = jnp.asarray(points)
+    if pts.shape[-1:] != (3,):
+        raise ValueError(f"points: expected shape (..., 3), got {pts.shape}")
+    if not jnp.issubdtype(pts.dtype, jnp.floating):
+        pts = pts.astype(jnp.float32)
+    return _sample(m, pts, jnp.int32(_mode_index(method, space)), jnp.bool_(space == "log_odds"))
+
+
+# ----------------------------------------------------------------------------- source view
+
+
+def _source_bricks(m: OccupancyMap):
+    """Host: dense table of source bricks holding leaves finer than a brick.
+
+    Returns ``(codes (n,) uint64 sorted brick min-corner codes, values (n, 512) float32 in
+    local Morton order, NaN = unknown)``. Leaves at depth <= 13 are not copied: they cover
+    whole bricks and are found by ``searchsorted`` on the leaf codes.
+    """
+    n = m.num_leaves
+    codes = morton.join_codes(np.asarray(m.code[:n]))
+    depth = np.asarray(m.depth[:n])
+    lo = np.asarray(m.log_odds[:n])
+    fine = depth > _BRICK_DEPTH
+    c, d, v = codes[fine], depth[fine], lo[fine]
+    bcode = c & ~np.uint64(_BV - 1)
+    if bcode.size:
+        first = np.ones(bcode.shape, bool)
+        first[1:] = bcode[1:] != bcode[:-1]
+        ucodes = bcode[first]
+        slot = np.cumsum(first) - 1
+    else:
+        ucodes = np.zeros(0, np.uint64)
+        slot = np.zeros(0, np.int64)
+    table = np.full((ucodes.size, _BV), np.nan, np.float32)
+    local = (c & np.uint64(_BV - 1)).astype(np.int64)
+    for depth_l in (14, 15, 16):
+        sel = d == depth_l
+        if not sel.any():
+            continue
+        span = 8 ** (_D - depth_l)
+        view = table.reshape(ucodes.size * (_BV // span), span)
+        view[slot[sel] * (_BV // span) + local[sel] // span] = v[sel, None]
+    return ucodes, table
+
+
+def _source_brick_keys(m: OccupancyMap) -> np.ndarray:
+    """Host: ``(n, 3)`` int64 brick keys (finest key >> 3) of every brick a leaf covers."""
+    lv_keys = np.asarray(morton.codes_to_keys(morton.join_codes(np.asarray(m.code[:m.num_leaves]))))
+    depth = np.asarray(m.depth[:m.num_leaves])
+    bkeys = lv_keys.astype(np.int64) >> 3
+    parts = []
+    fine = depth >= _BRICK_DEPTH
+    if fine.any():
+        parts.append(_unique_rows(bkeys[fine]))
+    for d in np.unique(depth[~fine]):
+        w = 1 << (_BRICK_DEPTH - int(d))
+        g = np.stack(np.meshgrid(np.arange(w), np.arange(w), np.arange(w), indexing="ij"), -1).reshape(-1, 3)
+        parts.append((bkeys[depth == d][:, None, :] + g[None]).reshape(-1, 3))
+    return np.concatenate(parts, axis=0) if parts else np.zeros((0, 3), np.int64)
+
+
+def _unique_rows(k: np.ndarray) -> np.ndarray:
+    lin = (k[:, 0] << 26) | (k[:, 1] << 13) | k[:, 2]
+    u = np.unique(lin)
+    return np.stack([u >> 26, (u >> 13) & 8191, u & 8191], axis=-1)
+
+
+def _plan_dest_bricks(src_bkeys: np.ndarray, T_key) -> np.ndarray:
+    """Host: Morton-sorted ``(n, 3)`` int64 keys of destination bricks whose voxel centres may
+    map back into a source brick. ``T_key``: ``(R, t_key)`` forward map in key units
+    (``u' = R u + t_key``, voxel centres at integer ``u``)."""
+    R, t_key = T_key
+    if src_bkeys.shape[0] == 0:
+        return np.zeros((0, 3), np.int64)
+    centre = (src_bkeys.astype(np.float64) * _B + 3.5) @ R.T + t_key
+    half = 4.0 * np.abs(R).sum(axis=1) + 1e-3  # image of the brick cube [8b - .5, 8b + 7.5]
+    kmin = np.ceil(centre - half)
+    kmax = np.floor(centre + half)
+    bmin = np.floor_divide(kmin, _B).astype(np.int64)
+    bmax = np.floor_divide(kmax, _B).astype(np.int64)
+    lo = bmin.min(axis=0)
+    hi = bmax.max(axis=0)
+    lo = np.maximum(lo, 0)
+    hi = np.minimum(hi, _KEY_MAX // _B - 1)
+    if np.any(hi < lo):
+        return np.zeros((0, 3), np.int64)
+    ext = hi - lo + 1
+    total = int(np.prod(ext))
+    offs = _CORNERS_27
+    cand = bmin[:, None, :] + offs[None]  # (n, 27, 3)
+    ok = np.all(cand <= bmax[:, None, :], axis=-1) & np.all((cand >= lo) & (cand <= hi), axis=-1)
+    cand = cand[ok] - lo
+    lin = (cand[:, 2] * ext[1] + cand[:, 1]) * ext[0] + cand[:, 0]
+    if total <= (1 << 28):
+        bitmap = np.zeros(total, bool)
+        bitmap[lin] = True
+        u = np.flatnonzero(bitmap)
+    else:
+        u = np.unique(lin)
+    keys = np.stack([u % ext[0], (u // ext[0]) % ext[1], u // (ext[0] * ext[1])], axis=-1) + lo
+    order = np.argsort(morton.keys_to_codes(keys.astype(np.uint64) * _B), kind="stable")
+    return keys[order]
+
+
+_CORNERS_27 = np.stack(np.meshgrid(np.arange(3), np.arange(3), np.arange(3), indexing="ij"),
+                       -1).reshape(-1, 3)[:, ::-1].astype(np.int64)
+
+
+# ----------------------------------------------------------------------------- kernel
+
+
+def _morton9(k):
+    """Local Morton index (0..511) of the low 3 key bits per axis, ``k (..., 3)``."""
+    def spread(v):
+        return (v & 1) | ((v & 2) << 2) | ((v & 4) << 4)
+    k = k & 7
+    return spread(k[..., 0]) | (spread(k[..., 1]) << 1) | (spread(k[..., 2]) << 2)
+
+
+def _window(m, dense_codes, dense_count, wb):
+    """Per destination brick, the 27 source bricks of its window ``wb (B, 3)`` (brick keys of
+    the window's min corner): ``(slot (B, 27) int32 into the dense table or -1,
+    uniform log-odds (B, 27) float32, NaN if unknown or dense)``."""
+    bkeys = wb[:, None, :] + jnp.asarray(_CORNERS_27, jnp.int32)  # (B, 27, 3)
+    in_range = jnp.all((bkeys >= 0) & (bkeys < _KEY_MAX // _B), axis=-1)
+    words = morton.keys_to_words(jnp.clip(bkeys, 0, _KEY_MAX // _B - 1) * _B)
+    row, known = tree.lookup_words(m, words)
+    whole = known & in_range & (m.depth[row] <= _BRICK_DEPTH)
+    uni = jnp.where(whole, m.log_odds[row], jnp.nan)
+    j = morton.searchsorted_words(dense_codes, words, side="left")
+    jc = jnp.clip(j, 0, dense_codes.shape[0] - 1)
+    hit = (j < dense_count) & morton.words_equal(dense_codes[jc], words) & in_range & ~whole
+    return jnp.where(hit, jc, -1), uni
+
+
+def _resample_chunk(m, dense_codes, dense_count, dense, A, c, K_d, K_s, bkeys, bvalid,
+                    mode):
+    """Resample one chunk of destination bricks ``bkeys (B, 3)``: returns per voxel
+    ``(log_odds (B, 512), known (B, 512))`` in local Morton order."""
+    nb = bkeys.shape[0]
+    keys = bkeys[:, None, :] * _B + jnp.asarray(_LOCAL)  # (B, 512, 3) destination keys
+    rel = (keys - K_d).astype(jnp.float32)
+    u = rel @ A.T + c  # source key coordinates relative to K_s, centres at integers
+    base = jnp.floor(u)
+    f = u - base
+    # Snap offsets within float32 noise of a lattice point (exact whole-voxel moves).
+    up = f > 1.0 - _SNAP
+    base = jnp.where(up, base + 1.0, base)
+    f = jnp.where(up | (f < _SNAP), jnp.float32(0), f)
+    key0 = base.astype(jnp.int32) + K_s  # (B, 512, 3)
+    wb = jnp.floor_divide(jnp.min(key0, axis=1), _B)  # (B, 3)
+    slot_w, uni_w = _window(m, dense_codes, dense_count, wb)
+    nk = key0[:, :, None, :] + jnp.asarray(_CORNERS)  # (B, 512, 8, 3)
+    o = jnp.floor_divide(nk, _B) - wb[:, None, None, :]
+    in_win = jnp.all((o >= 0) & (o <= 2), axis=-1)
+    in_range = jnp.all((nk >= 0) & (nk < _KEY_MAX), axis=-1)
+    o = jnp.clip(o, 0, 2)
+    widx = (o[..., 0] + 3 * o[..., 1] + 9 * o[..., 2]).reshape(nb, -1)
+    slot = jnp.take_along_axis(slot_w, widx, axis=1).reshape(nb, _BV, 8)
+    uni = jnp.take_along_axis(uni_w, widx, axis=1).reshape(nb, _BV, 8)
+    flat = jnp.maximum(slot, 0) * _BV + _morton9(nk)
+    val = jnp.where(slot >= 0, dense[flat], uni)
+    known8 = in_win & in_range & ~jnp.isnan(val)
+    _, lo, center_known, exact = _blend(val, known8, f, mode)
+    lo = jnp.where(jnp.isnan(exact), lo, exact)
+    lo = jnp.clip(lo, m.params.clamp_min_log_odds, m.params.clamp_max_log_odds)
+    known = center_known & bvalid[:, None]
+    return jnp.where(known, lo, jnp.float32(0)), known
+
+
+def _brick_prune(lo, known):
+    """Prune inside each brick (levels 16 -> 13). ``(B, 512)`` -> per voxel
+    ``(emit (B, 512) bool, depth (B, 512) int32)``: a voxel emits the leaf it starts."""
+    nb = lo.shape[0]
+    depth = jnp.full(lo.shape, _D, jnp.int32)
+    for g, d in ((8, 15), (64, 14), (512, 13)):
+        lg = lo.reshape(nb, _BV // g, g)
+        kg = known.reshape(nb, _BV // g, g)
+        uni = jnp.all(kg, axis=-1) & jnp.all(lg == lg[..., :1], axis=-1)
+        depth = jnp.where(jnp.repeat(uni, g, axis=1), d, depth)
+    span = jnp.left_shift(1, 3 * (_D - depth))
+    local = jnp.arange(_BV, dtype=jnp.int32)[None, :]
+    return known & (local % span == 0), depth
+
+
+@functools.partial(jax.jit, static_argnames=("chunk", "out_capacity"))
+def _transform_kernel(m, dense_codes, dense_count, dense, A, c, K_d, K_s, bkeys, n_bricks,
+                      mode, chunk, out_capacity):
+    n_chunks = bkeys.shape[0] // chunk
+    rows = chunk * _BV
+    cap = out_capacity + rows
+    init = (
+        jnp.zeros((cap, 2), jnp.int32).at[:, 0].set(morton.SENTINEL_HI),
+        jnp.full((cap,), _D, jnp.int32),
+        jnp.zeros((cap,), jnp.float32),
+        jnp.int32(0),
+    )
+
+    def compute(carry, i):
+        out_code, out_depth, out_lo, offset = carry
+        bk = jax.lax.dynamic_slice_in_dim(bkeys, i * chunk, chunk)
+        bvalid = i * chunk + jnp.arange(chunk) < n_bricks
+        lo, known = _resample_chunk(m, dense_codes, dense_count, dense, A, c, K_d, K_s, bk,
+                                    bvalid, mode)
+        emit, depth = _brick_prune(lo, known)
+        bwords = morton.keys_to_words(bk * _B)  # (B, 2); local Morton index fills low 9 bits
+        vcode = jnp.stack([jnp.broadcast_to(bwords[:, None, 0], (chunk, _BV)),
+                           bwords[:, None, 1] | jnp.arange(_BV, dtype=jnp.int32)[None, :]], -1)
+        emit = emit.reshape(-1)
+        n_emit = jnp.sum(emit, dtype=jnp.int32)
+        (idx,) = jnp.nonzero(emit, size=rows, fill_value=0)
+        start = jnp.minimum(offset, out_capacity)
+        out_code = jax.lax.dynamic_update_slice_in_dim(out_code, vcode.reshape(-1, 2)[idx], start, 0)
+        out_depth = jax.lax.dynamic_update_slice_in_dim(out_depth, depth.reshape(-1)[idx], start, 0)
+        out_lo = jax.lax.dynamic_update_slice_in_dim(out_lo, lo.reshape(-1)[idx], start, 0)
+        return out_code, out_depth, out_lo, offset + n_emit
+
+    def step(carry, i):
+        # Padding chunks (past n_bricks) are skipped, so generous buckets cost no compute.
+        return jax.lax.cond(i * chunk < n_bricks, compute, lambda cr, _: cr, carry, i), None
+
+    (code, depth, lo, total), _ = jax.lax.scan(step, init, jnp.arange(n_chunks))
+    count = jnp.minimum(total, out_capacity)
+    valid = jnp.arange(out_capacity) < count
+    code = jnp.where(valid[:, None], code[:out_capacity], jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
+    depth = jnp.where(valid, depth[:out_capacity], _D)
+    lo = jnp.where(valid, lo[:out_capacity], jnp.float32(0))
+    out = OccupancyMap(code, depth, lo, count, m.params, m.resolution, m.tree_depth)
+    return out, total
+
+
+def _key_transform(T, resolution):
+    """Forward map in key units: ``u' = R u + t_key`` for voxel-centre coordinates
+    ``u = x / res + 32768 - 0.5`` (integer at centres)."""
+    R = T[:3, :3]
+    o = morton.KEY_OFFSET - 0.5
+    t_key = T[:3, 3] / resolution + o - R @ np.full(3, o)
+    return R, t_key
+
+
+def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
+                  space: str = "probability", chunk_bricks: int = 64,
+                  out_capacity: int | None = None) -> OccupancyMap:
+    """Alg. 7 (corrected): the map ``m`` of frame ``src`` expressed in frame ``dst``.
+
+    Args:
+      m: source map (leaves at any depth).
+      T_dst_src: ``(4, 4)`` rigid transform mapping points of ``src`` into ``dst`` (metres).
+      method: ``"trilinear"`` (unknown neighbours left out, weights renormalised),
+        ``"nearest"`` (value of the source leaf containing ``x_s``) or ``"thesis"``
+        (unknown neighbours weigh as probability 0, as Appendix A.2; bugs fixed).
+      space: interpolate in ``"probability"`` (thesis) or ``"log_odds"``; ``"thesis"``
+        requires ``"probability"``.
+      chunk_bricks: destination bricks (8^3 voxels) per scan step (static; memory per step is
+        about ``chunk_bricks * 512 * 8 * 40`` bytes).
+      out_capacity: static output capacity before the final prune; default a power-of-two
+        guess, grown and re-run if it overflows.
+
+    Returns a maximally pruned map with the source's resolution and parameters: destination
+    voxels (depth 16) whose centre maps back into a known source leaf, log-odds clamped.
+    Raises ``ValueError`` for an invalid transform or when the transformed map would leave
+    OctoMap's key range.
+    """
+    _check_choice(method, METHODS, "method")
+    _check_choice(space, SPACES, "space")
+    if method == "thesis" and space != "probability":
+        raise ValueError('method="thesis" interpolates in probability; use space="probability"')
+    if chunk_bricks < 1:
+        raise ValueError(f"chunk_bricks must be positive, got {chunk_bricks}")
+    T = check_rigid_transform(T_dst_src)
+    res = m.resolution
+    if m.num_leaves == 0:
+        return m
+    p_min, p_max = transformed_bounds(m, T)
+    limit = morton.KEY_OFFSET * res
+    if np.any(p_min < -limit) or np.any(p_max > limit):
+        raise ValueError(
+            f"T_dst_src: the transformed map spans {p_min.round(3).tolist()} .. "
+            f"{p_max.round(3).tolist()} m, outside OctoMap's key range +-{limit:g} m at "
+            f"resolution {res:g} m")
+    R, t_key = _key_transform(T, res)
+    dest = _plan_dest_bricks(_source_brick_keys(m), (R, t_key))
+    dcodes, dtable = _source_bricks(m)
+    n_db = dcodes.size
+    db_cap = bucket_capacity(n_db, minimum=64)
+    dense_codes = np.zeros((db_cap, 2), np.int32)
+    dense_codes[:, 0] = morton.SENTINEL_HI
+    dense_codes[:n_db] = morton.split_codes(dcodes)
+    dense = np.full((db_cap * _BV,), np.nan, np.float32)
+    dense[: n_db * _BV] = dtable.reshape(-1)
+    # Relative coordinates keep float32 precision: u_rel = R^T (k - K_d) + c, with
+    # K_s = round(R^T K_d - R^T t_key) so that |c| <= 0.5.
+    n_b = dest.shape[0]
+    K_d = np.round(dest.mean(axis=0) * _B).astype(np.int64) if n_b else np.zeros(3, np.int64)
+    u_s = R.T @ (K_d.astype(np.float64) - t_key)
+    K_s = np.round(u_s).astype(np.int64)
+    c = u_s - K_s
+    chunk = int(chunk_bricks)
+    b_cap = max(bucket_capacity(n_b, minimum=1024), chunk)
+    b_cap = int(math.ceil(b_cap / chunk) * chunk)
+    bkeys = np.zeros((b_cap, 3), np.int32)
+    bkeys[:n_b] = dest
+    if out_capacity is None:
+        out_capacity = bucket_capacity(2 * m.num_leaves + 8 * n_b, minimum=1 << 15)
+    args = (m, jnp.asarray(dense_codes), jnp.int32(n_db), jnp.asarray(dense),
+            jnp.asarray(R.T, jnp.float32), jnp.asarray(c, jnp.float32),
+            jnp.asarray(K_d, jnp.int32), jnp.asarray(K_s, jnp.int32), jnp.asarray(bkeys),
+            jnp.int32(n_b), jnp.int32(_mode_index(method, space)))
+    out, total = _transform_kernel(*args, chunk=chunk,
+                                   out_capacity=int(out_capacity))
+    total = int(total)
+    if total > out_capacity:
+        out, total = _transform_kernel(*args, chunk=chunk,
+                                       out_capacity=bucket_capacity(total))
+    out = tree.prune(out)
+    n = out.num_leaves
+    cap = bucket_capacity(n)
+    if cap < out.capacity:
+        out = OccupancyMap(out.code[:cap], out.depth[:cap], out.log_odds[:cap], out.count,
+                           out.params, out.resolution, out.tree_depth)
+    return out
