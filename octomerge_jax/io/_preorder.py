@@ -52,6 +52,10 @@ for _m in range(256):
 del _m, _bits
 
 
+#: ``_COMMON_DEPTH[b]``: deepest common depth of two codes whose highest differing bit is b.
+_COMMON_DEPTH = np.array([15 - b // 3 for b in range(48)], dtype=np.int64)
+
+
 class StreamError(Exception):
     """Structural error at record ``record`` of a stream (converted to ``MapFormatError``)."""
 
@@ -73,8 +77,9 @@ def common_depths(codes: np.ndarray) -> np.ndarray:
     x = codes[1:] ^ codes[:-1]
     if x.size and not x.all():
         raise ValueError("leaf codes must be distinct")
-    _, bitlen = np.frexp(x.astype(np.float64))  # exact: x < 2^48; bitlen = b + 1
-    return 15 - (bitlen.astype(np.int64) - 1) // 3
+    # floor(log2 x) from the float64 exponent bits (exact: 0 < x < 2^48)
+    high_bit = (x.astype(np.float64).view(np.int64) >> 52) - 1023
+    return _COMMON_DEPTH[high_bit]
 
 
 def group_sizes(codes: np.ndarray, depths: np.ndarray) -> np.ndarray:
@@ -102,51 +107,53 @@ class Layout(NamedTuple):
     """Nodes of the tree over some leaves, in pre-order (= the file's record order)."""
 
     depth: np.ndarray  # (T,) uint8
-    code: np.ndarray  # (T,) uint64 min-corner code of each node
-    is_leaf: np.ndarray  # (T,) bool
+    child_index: np.ndarray  # (T,) uint8, index of each node within its parent (root: 0)
+    opened: np.ndarray  # (T,) bool, node is its parent's first child (root: False)
     leaf_record: np.ndarray  # (n,) int64, the record of each leaf
+
+
+#: ``_DIGIT_SHIFT[d]``: the octal digit of a code that selects a depth-d node in its parent.
+_DIGIT_SHIFT = np.array([48] + [3 * (TREE_DEPTH - d) for d in range(1, TREE_DEPTH + 1)],
+                        dtype=np.uint64)
 
 
 def layout(codes: np.ndarray, depths: np.ndarray) -> Layout:
     """Pre-order node records of the tree whose leaves are ``codes``/``depths`` (sorted,
-    disjoint, depth >= 1 so that the root is an inner node)."""
+    disjoint, depth >= 1 so that the root is an inner node).
+
+    Leaf i opens the records ``depth = D_i + 1 .. depth_i`` (``D_i`` its common depth with
+    leaf i-1). The first record a leaf opens continues an existing parent (a later
+    sibling); every other record is the first child of the record before it.
+    """
     counts = group_sizes(codes, depths)
     total = int(counts.sum())
     ends = np.cumsum(counts)
     starts = ends - counts
-    first_depth = depths.astype(np.int64) - counts + 1  # depth of the first record opened
-    rec_depth = (np.arange(total, dtype=np.int64)
-                 - np.repeat(starts - first_depth, counts)).astype(np.uint8)
-    rec_code = np.repeat(codes, counts) & MASKS[rec_depth]
-    is_leaf = np.zeros(total, dtype=bool)
-    leaf_record = ends - 1
-    is_leaf[leaf_record] = True
-    return Layout(rec_depth, rec_code, is_leaf, leaf_record)
+    depths8 = depths.astype(np.int8)
+    step = np.ones(total, dtype=np.int8)  # depth increments along the stream
+    step[0] = 0
+    step[starts[1:]] = (depths8[1:] - counts[1:].astype(np.int8) + 1) - depths8[:-1]
+    rec_depth = np.cumsum(step, dtype=np.int8).view(np.uint8)
+    opened = np.ones(total, dtype=bool)
+    opened[starts] = False
+    child_index = ((np.repeat(codes, counts) >> _DIGIT_SHIFT[rec_depth]) & _U64(7)).astype(
+        np.uint8)
+    return Layout(rec_depth, child_index, opened, ends - 1)
 
 
 def levels(lay: Layout):
-    """Yield, for depth ``e`` = 16..1, ``(e, kids, starts, parents, child_index)``:
-    ``kids`` the records at depth e in stream order, ``starts`` the start of each sibling run
-    within ``kids``, ``parents`` the record of each run's parent, ``child_index`` (0..7) of
-    each kid within its parent."""
+    """Yield, for depth ``e`` = 16..1, ``(kids, starts, parents, child_index)``: ``kids`` the
+    records at depth e in stream order (siblings are contiguous runs), ``starts`` the start
+    of each run within ``kids`` (its first child), ``parents`` each run's parent record
+    (the record before its first child), ``child_index`` (0..7) of each kid."""
     order = np.argsort(lay.depth, kind="stable")  # radix sort: uint8 keys
     bounds = np.concatenate([[0], np.cumsum(np.bincount(lay.depth, minlength=TREE_DEPTH + 1))])
     for e in range(TREE_DEPTH, 0, -1):
         kids = order[bounds[e]: bounds[e + 1]]
         if kids.size == 0:
             continue
-        kid_codes = lay.code[kids]
-        pc = kid_codes & MASKS[e - 1]
-        new_run = np.empty(kids.size, dtype=bool)
-        new_run[0] = True
-        np.not_equal(pc[1:], pc[:-1], out=new_run[1:])
-        starts = np.flatnonzero(new_run)
-        above = order[bounds[e - 1]: bounds[e]]
-        parents = above[~lay.is_leaf[above]]
-        if parents.size != starts.size:  # pragma: no cover - impossible for a valid layout
-            raise AssertionError("inconsistent layout")
-        child_index = ((kid_codes >> _U64(3 * (TREE_DEPTH - e))) & _U64(7)).astype(np.uint8)
-        yield e, kids, starts, parents, child_index
+        starts = np.flatnonzero(lay.opened[kids])
+        yield kids, starts, kids[starts] - 1, lay.child_index[kids]
 
 
 def encode_ot(codes, depths, log_odds, payload_extra: int = 0) -> tuple[np.ndarray, int]:
@@ -161,7 +168,7 @@ def encode_ot(codes, depths, log_odds, payload_extra: int = 0) -> tuple[np.ndarr
     value[lay.leaf_record] = log_odds
     mask = np.zeros(total, dtype=np.uint8)
     bit = (np.uint8(1) << np.arange(8, dtype=np.uint8))
-    for _e, kids, starts, parents, ci in levels(lay):
+    for kids, starts, parents, ci in levels(lay):
         # OctoMap's max starts at -FLT_MAX and takes ``l > max``: fmax ignores NaN likewise.
         value[parents] = np.fmax.reduceat(value[kids], starts)
         mask[parents] = np.bitwise_or.reduceat(bit[ci], starts)
@@ -183,10 +190,12 @@ def encode_bt(codes, depths, occupied) -> tuple[np.ndarray, int]:
     state = np.full(total, 3, dtype=np.uint16)
     state[lay.leaf_record] = np.where(occupied, 2, 1).astype(np.uint16)
     word = np.zeros(total, dtype=np.uint16)
-    for _e, kids, starts, parents, ci in levels(lay):
+    for kids, starts, parents, ci in levels(lay):
         contrib = state[kids] << (2 * ci.astype(np.uint16))
         word[parents] = np.bitwise_or.reduceat(contrib, starts)
-    inner = word[~lay.is_leaf]
+    is_leaf = np.zeros(total, dtype=bool)
+    is_leaf[lay.leaf_record] = True
+    inner = word[~is_leaf]
     return inner.astype("<u2").view(np.uint8), total
 
 
@@ -195,10 +204,10 @@ def encode_bt(codes, depths, occupied) -> tuple[np.ndarray, int]:
 
 def tree_length(degree: np.ndarray) -> tuple[int, np.ndarray]:
     """Length ``N`` of the pre-order tree at the start of a record stream with child counts
-    ``degree``, and the pending-slot path ``h[0..N]``.
+    ``degree``, and the pending-slot path ``h[0..N]`` (``h[N] == 0``).
 
     Raises ``StreamError`` if the stream ends before the tree does, or the path climbs past
-    what a depth-16 tree allows (the record where it does).
+    what a depth-16 tree allows (at the record where it does).
     """
     n = degree.size
     h = np.empty(n + 1, dtype=np.int64)
@@ -218,64 +227,77 @@ def tree_length(degree: np.ndarray) -> tuple[int, np.ndarray]:
     return length, h
 
 
-def next_drop(h: np.ndarray) -> np.ndarray:
-    """``out[k]`` = first ``m > k`` with ``h[m] == h[k] - 1`` (the end of record k's subtree),
-    for a path with ``h[:-1] >= 1``, ``h[-1] == 0``, steps >= -1 and values <= 255.
+def record_depths(h: np.ndarray) -> np.ndarray:
+    """Depth ``(N,)`` int64 of each record of a valid pre-order tree from its path ``h``.
 
-    One stable (radix) sort groups positions by value; within group ``v - 1`` the answer
-    is the first position after ``k`` (``searchsorted`` with sorted needles).
+    ``depth[k] = depth[k-1] + 1 - closes[k-1]`` where ``closes[j]`` counts the subtrees
+    ending at record j, so ``depth[k] = k - sum_{j<k} closes[j]``. Subtree of record s
+    ends right before the first later position where ``h == h[s] - 1`` (``h`` drops by at
+    most 1 per record). Sorting entries ``2 h[m]`` (positions) and ``2 (h[s] - 1)`` (subtree
+    starts) stably by key (one radix sort over uint8) puts every subtree start just before
+    the position that ends it, so ``closes`` is a count between consecutive positions.
     """
-    n1 = h.size
-    order = np.argsort(h.astype(np.uint8), kind="stable")
-    hv = h[order]
-    first = int(np.searchsorted(hv, 1))  # group 0 holds only the final position
-    keys = hv * n1 + order
-    needles = order[first:]
-    found = np.searchsorted(keys, (hv[first:] - 1) * n1 + needles, side="right")
-    out = np.empty(n1 - 1, dtype=np.int64)
-    out[needles] = order[found]
-    return out
+    n = h.size - 1
+    key = np.empty(2 * n + 1, dtype=np.uint8)
+    key[0::2] = 2 * h
+    key[1::2] = 2 * h[:n] - 2
+    order = np.argsort(key, kind="stable")
+    is_start = (order & 1).astype(bool)
+    starts_before = np.cumsum(is_start)
+    positions = np.flatnonzero(~is_start)
+    ends_here = np.diff(starts_before[positions], prepend=0)
+    closes_before = np.zeros(n + 1, dtype=np.int64)  # at position m: subtrees ending at m-1
+    closes_before[order[positions] >> 1] = ends_here
+    return np.arange(n, dtype=np.int64) - np.cumsum(closes_before[:n])
 
 
-def breadth_first(child_mask: np.ndarray, nxt: np.ndarray, max_depth: int):
-    """Depth ``(N,)`` uint8 and min-corner code ``(N,)`` uint64 of each stream record.
+class StreamLayout(NamedTuple):
+    """Records of a parsed stream: depth, min-corner code, and the depth-major order."""
+
+    depth: np.ndarray  # (N,) uint8
+    code: np.ndarray  # (N,) uint64
+    order: np.ndarray  # (N,) int64: records sorted by depth, stream order within a depth
+    bounds: np.ndarray  # (18,) start of each depth in ``order``
+
+
+def stream_layout(child_mask: np.ndarray, h: np.ndarray, max_depth: int) -> StreamLayout:
+    """Depth and Morton code of each record of a pre-order stream.
 
     ``child_mask[k]`` has bit j set iff child j of record k is itself a record (follows in
-    the stream); ``nxt`` from ``next_drop``. Records deeper than ``max_depth`` raise
-    ``StreamError``.
+    the stream); ``h`` from ``tree_length``. A record's parent is the previous record if
+    that one has children (it is a first child), else the parent of its previous sibling,
+    which is the previous record of the same depth; its rank among the siblings gives its
+    child index (the rank-th set bit of the parent's mask). Codes follow top-down, one depth
+    at a time. Records deeper than ``max_depth`` raise ``StreamError``.
     """
     n = child_mask.size
-    degree = POPCOUNT8[child_mask]
-    depth = np.zeros(n, dtype=np.uint8)
+    depth = record_depths(h)
+    too_deep = np.flatnonzero(depth > max_depth)
+    if too_deep.size:
+        k = int(too_deep[0])
+        raise StreamError(k - 1, f"a node at depth {int(depth[k]) - 1} has children "
+                                 f"(deeper than {max_depth} levels)")
+    depth8 = depth.astype(np.uint8)
+    order = np.argsort(depth8, kind="stable")
+    d_sorted = depth8[order].astype(np.int64)
+    first_child = np.empty(n, dtype=bool)
+    first_child[0] = True
+    first_child[1:] = child_mask[:-1] != 0
+    fc_sorted = first_child[order]
+    # parent: forward-fill "previous record" from each first child along its depth block
+    # (offset by depth so the running max never crosses into the next block)
+    key = np.where(fc_sorted, d_sorted * (n + 1) + order - 1, -1)
+    parent = np.maximum.accumulate(key) - d_sorted * (n + 1)
+    idx = np.arange(n, dtype=np.int64)
+    rank = idx - np.maximum.accumulate(np.where(fc_sorted, idx, 0))
+    parent[0] = 0
+    child = NTH_BIT8.reshape(-1)[child_mask[parent].astype(np.int64) * 8 + rank]
+    bounds = np.searchsorted(d_sorted, np.arange(TREE_DEPTH + 2))
     code = np.zeros(n, dtype=np.uint64)
-    front = np.zeros(1, dtype=np.int64)
-    front_code = np.zeros(1, dtype=np.uint64)
-    visited = 0
-    for d in range(TREE_DEPTH + 1):
-        depth[front] = d
-        code[front] = front_code
-        visited += front.size
-        g = degree[front]
-        has = g > 0
-        if not has.any():
+    for e in range(1, TREE_DEPTH + 1):
+        a, b = int(bounds[e]), int(bounds[e + 1])
+        if a == b:
             break
-        if d + 1 > max_depth:
-            raise StreamError(int(front[has][0]), f"a node at depth {d} has children "
-                                                  f"(deeper than {max_depth} levels)")
-        pos, cc, g = front[has] + 1, front_code[has], g[has]
-        m = child_mask[front[has]]
-        shift = _U64(3 * (TREE_DEPTH - 1 - d))
-        kids, kid_codes = [], []
-        for r in range(8):
-            if r:
-                sel = g > r
-                if not sel.any():
-                    break
-                pos, cc, g, m = nxt[pos[sel]], cc[sel], g[sel], m[sel]
-            kids.append(pos)
-            kid_codes.append(cc | (NTH_BIT8[m, r].astype(np.uint64) << shift))
-        front = np.concatenate(kids)
-        front_code = np.concatenate(kid_codes)
-    if visited != n:  # pragma: no cover - guaranteed by a valid pending-slot path
-        raise StreamError(0, "inconsistent tree structure")
-    return depth, code
+        code[order[a:b]] = code[parent[a:b]] | (child[a:b].astype(np.uint64)
+                                                << _U64(3 * (TREE_DEPTH - e)))
+    return StreamLayout(depth8, code, order, bounds)

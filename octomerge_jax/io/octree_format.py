@@ -108,6 +108,8 @@ _BT_INNER = ((_states == 3) @ _weights).astype(np.uint8)
 _BT_OCC = ((_states == 2) @ _weights).astype(np.uint8)
 _BT_FREE = ((_states == 1) @ _weights).astype(np.uint8)
 del _w, _states, _weights
+#: bit shift of child slot j of a node at depth d: ``j << _CHILD_SHIFT[d]``.
+_CHILD_SHIFT = np.array([3 * (15 - d) if d < 16 else 0 for d in range(17)], dtype=np.uint64)
 
 
 @dataclass(frozen=True)
@@ -292,17 +294,20 @@ def _decode_bt(buf: np.ndarray, start: int, source, params):
         raise MapFormatError(source, start + 2 * int(empty_rec[0]),
                              "an inner node has no children (corrupt child flags)")
     try:
-        depth, code = _preorder.breadth_first(inner, _preorder.next_drop(h), max_depth=15)
+        lay = _preorder.stream_layout(inner, h, max_depth=15)
     except _preorder.StreamError as err:
         raise _stream_error(source, start, 2, total, err) from None
-    occ, free = _BT_OCC[words], _BT_FREE[words]
-    slots = np.unpackbits((occ | free)[:, None], axis=1, bitorder="little").astype(bool)
-    rec, slot = np.nonzero(slots)
-    shift = (3 * (15 - depth[rec].astype(np.int64))).astype(np.uint64)
-    codes = code[rec] | (slot.astype(np.uint64) << shift)
-    depths = depth[rec] + np.uint8(1)
+    # leaf children, generated depth by depth: one sorted run per depth, merged by argsort
+    occ = _BT_OCC[words][lay.order]
+    either = occ | _BT_FREE[words][lay.order]
+    row, slot = np.nonzero(np.unpackbits(either[:, None], axis=1, bitorder="little"))
+    rec = lay.order[row]
+    parent_depth = lay.depth[rec]
+    slot64 = slot.astype(np.uint64)
+    codes = lay.code[rec] | (slot64 << _CHILD_SHIFT[parent_depth])
+    depths = parent_depth + np.uint8(1)
     p = _params_f32(params)
-    is_occ = ((occ[rec] >> slot.astype(np.uint8)) & 1).astype(bool)
+    is_occ = ((occ[row] >> slot.astype(np.uint8)) & 1).astype(bool)
     log_odds = np.where(is_occ, p["clamp_max_log_odds"], p["clamp_min_log_odds"])
     order = np.argsort(codes, kind="stable")
     nodes = length + int(rec.size)
@@ -331,11 +336,15 @@ def _decode_ot(buf: np.ndarray, start: int, source, tree_id: str):
         return *_empty_leaves(), 1, end
     mask = mask[:length]
     try:
-        depth, code = _preorder.breadth_first(mask, _preorder.next_drop(h), max_depth=16)
+        lay = _preorder.stream_layout(mask, h, max_depth=16)
     except _preorder.StreamError as err:
         raise _stream_error(source, start, rec_size, total, err) from None
+    depth, code = lay.depth, lay.code
     leaf = np.flatnonzero(mask == 0)
-    log_odds = np.ascontiguousarray(recs[leaf, :4]).view("<f4").reshape(-1)
+    # float32 payloads sit at a 5- (or 8-) byte stride: a strided (unaligned) view, no copy
+    all_log_odds = np.ndarray((length,), dtype="<f4", buffer=buf, offset=start,
+                              strides=(rec_size,))
+    log_odds = all_log_odds[leaf]
     bad = np.flatnonzero(np.isnan(log_odds))
     if bad.size:
         raise MapFormatError(source, start + rec_size * int(leaf[bad[0]]),
