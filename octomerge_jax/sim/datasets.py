@@ -1,0 +1,103 @@
+"""Two-robot mapping runs with ground truth (thesis §7.1.2 and §7.2.2).
+
+Robot 1 maps in the world frame. Robot 2 maps in its own frame ``m2``, rotated by ``yaw_2_rad``
+(pi/4 in the thesis, "so that maps are built in different voxel discretizations") and offset
+from the world: ``T_1_2`` (= ``T_m1_m2``) maps points of robot 2's map frame into robot 1's.
+Optional odometry drift perturbs each robot's believed poses (the scans are taken at the true
+poses but inserted at the drifted ones), as when a robot localises by dead reckoning.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..insert import insert_point_cloud
+from ..map import OccupancyMap, OccupancyParams, empty
+from .scenes import Scene, make_scene
+from .sensors import DepthCamera, scan
+from .trajectory import apply_odometry_drift, pose_from_xyz_rpy, poses_along_path
+
+__all__ = ["RobotRun", "simulate_runs", "build_map", "make_two_robot_maps"]
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotRun:
+    """One robot's mapping run.
+
+    Attributes:
+      scans: list of ``(n_i, 3)`` float32 point clouds [m] in the sensor frame.
+      poses_map_sensor: ``(N, 4, 4)`` believed sensor poses in the robot's map frame (drifted
+        if drift was requested): what the robot inserts with.
+      poses_world_sensor: ``(N, 4, 4)`` true sensor poses in the world frame.
+      T_world_map: ``(4, 4)`` the robot's map frame in the world.
+    """
+
+    scans: list
+    poses_map_sensor: np.ndarray
+    poses_world_sensor: np.ndarray
+    T_world_map: np.ndarray
+
+
+def build_map(scans, poses_map_sensor, resolution: float, max_range: float = -1.0,
+              params: OccupancyParams | None = None) -> OccupancyMap:
+    """Insert sensor-frame scans at their poses (OctoMap ``insertPointCloud`` per scan)."""
+    m = empty(resolution, params)
+    for pts, T in zip(scans, np.asarray(poses_map_sensor, dtype=np.float64)):
+        if len(pts) == 0:
+            continue
+        world = np.asarray(pts, np.float64) @ T[:3, :3].T + T[:3, 3]
+        m = insert_point_cloud(m, world.astype(np.float32), T[:3, 3].astype(np.float32), max_range)
+    return m
+
+
+def simulate_runs(scene="lab", *, sensor=None, spacing: float = 0.35, yaw_2_rad: float = np.pi / 4,
+                  offset_2=(1.5, -0.8, 0.0), drift_translation: float = 0.0,
+                  drift_yaw_rad: float = 0.0, seed: int = 0) -> tuple[RobotRun, RobotRun, np.ndarray]:
+    """Simulate the two robots' scans along the scene's paths.
+
+    Returns ``(run1, run2, T_1_2)``; ``T_1_2`` maps robot 2's map frame into robot 1's (world).
+    ``drift_translation`` [m per m travelled] and ``drift_yaw_rad`` [rad per m] add odometry drift.
+    """
+    sc: Scene = make_scene(scene, seed)
+    sensor = DepthCamera(width=160, height=120) if sensor is None else sensor
+    rng = np.random.default_rng(seed)
+    T_1_2 = pose_from_xyz_rpy(*offset_2, 0.0, 0.0, yaw_2_rad)
+    runs = []
+    for i, T_world_map in enumerate((np.eye(4), T_1_2)):
+        P_world = poses_along_path(sc.paths[i], spacing, sc.sensor_height, sc.targets[i], sc.closed[i])
+        scans = scan(sensor, sc.triangles, P_world, seed=seed * 2 + i)
+        P_map = np.linalg.inv(T_world_map) @ P_world
+        if drift_translation > 0 or drift_yaw_rad > 0:
+            P_map = apply_odometry_drift(P_map, rng, drift_translation, drift_yaw_rad)
+        runs.append(RobotRun(scans, P_map, P_world, T_world_map))
+    return runs[0], runs[1], T_1_2
+
+
+def make_two_robot_maps(scene="lab", resolution: float = 0.1, *, sensor=None, spacing: float = 0.35,
+                        yaw_2_rad: float = np.pi / 4, offset_2=(1.5, -0.8, 0.0),
+                        max_range: float = -1.0, drift_translation: float = 0.0,
+                        drift_yaw_rad: float = 0.0, seed: int = 0,
+                        params: OccupancyParams | None = None):
+    """Two robots map overlapping parts of ``scene``; returns ``(map1, map2, T_1_2)``.
+
+    Args:
+      scene: a ``Scene`` or ``"lab"`` (thesis §7.2) / ``"office"`` (§7.1).
+      resolution: voxel size [m] of both maps.
+      sensor: ``DepthCamera`` (default 160 x 120, Kinect FOV and range) or ``SpinningLidar``.
+      spacing: distance between scans along each path [m].
+      yaw_2_rad, offset_2: robot 2's map frame in robot 1's (thesis: pi/4 yaw).
+      max_range: insertion max range [m] (< 0: none).
+      drift_translation, drift_yaw_rad: odometry drift per metre (0 = perfect localisation).
+      seed: makes the scene, noise and drift deterministic.
+
+    ``T_1_2`` (4x4 float64) maps points of map 2's frame into map 1's frame: the ground truth
+    the merger should recover.
+    """
+    run1, run2, T_1_2 = simulate_runs(scene, sensor=sensor, spacing=spacing, yaw_2_rad=yaw_2_rad,
+                                      offset_2=offset_2, drift_translation=drift_translation,
+                                      drift_yaw_rad=drift_yaw_rad, seed=seed)
+    map1 = build_map(run1.scans, run1.poses_map_sensor, resolution, max_range, params)
+    map2 = build_map(run2.scans, run2.poses_map_sensor, resolution, max_range, params)
+    return map1, map2, T_1_2

@@ -1,0 +1,95 @@
+"""Robot trajectories: sensor poses along a path of xy waypoints.
+
+Poses are ``T_world_sensor`` (4x4, maps sensor-frame points into the world). The sensor frame
+is x forward, y left, z up (ROS ``base_link`` convention); a pose's yaw faces along the path
+or towards a target point, like a ground robot with a fixed, level sensor.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["resample_path", "poses_along_path", "pose_from_xyz_rpy", "yaw_matrix",
+           "apply_odometry_drift"]
+
+
+def yaw_matrix(yaw_rad: float) -> np.ndarray:
+    """3x3 rotation about z by ``yaw_rad``."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def pose_from_xyz_rpy(x, y, z, roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
+    """4x4 pose from a translation [m] and roll/pitch/yaw [rad] (``R = Rz(yaw) Ry(pitch)
+    Rx(roll)``, as OctoMap's ``Pose6D`` / ``Quaternion(roll, pitch, yaw)``)."""
+    cr, sr = np.cos(roll_rad), np.sin(roll_rad)
+    cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
+    cy, sy = np.cos(yaw_rad), np.sin(yaw_rad)
+    R = np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def resample_path(waypoints, spacing: float, closed: bool = False) -> np.ndarray:
+    """Points every ``spacing`` metres along the polyline through ``waypoints (k, 2)``."""
+    w = np.asarray(waypoints, dtype=np.float64)
+    if w.ndim != 2 or w.shape[1] != 2 or len(w) == 0:
+        raise ValueError(f"waypoints: expected (k, 2), got shape {w.shape}")
+    if not spacing > 0:
+        raise ValueError(f"spacing must be positive metres, got {spacing!r}")
+    if closed:
+        w = np.vstack([w, w[:1]])
+    if len(w) == 1:
+        return w.copy()
+    seg = np.linalg.norm(np.diff(w, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    total = s[-1]
+    n = max(int(np.floor(total / spacing)), 1)
+    stop = total if not closed else total - spacing / 2
+    t = np.arange(0.0, stop + 1e-9, spacing)[: n + 1]
+    return np.stack([np.interp(t, s, w[:, 0]), np.interp(t, s, w[:, 1])], axis=1)
+
+
+def poses_along_path(waypoints, spacing: float = 0.25, height: float = 0.5, target=None,
+                     closed: bool = False) -> np.ndarray:
+    """Sensor poses ``T_world_sensor (N, 4, 4)`` every ``spacing`` m along the path.
+
+    The sensor faces ``target`` (xy) if given, else along the direction of travel.
+    """
+    xy = resample_path(waypoints, spacing, closed)
+    if target is not None:
+        d = np.asarray(target, float).reshape(1, 2) - xy
+    elif closed:
+        d = np.roll(xy, -1, axis=0) - xy
+    else:
+        d = np.zeros_like(xy)
+        d[:, 0] = 1.0
+        if len(xy) > 1:
+            d[:-1] = xy[1:] - xy[:-1]
+            d[-1] = d[-2]
+    yaw = np.arctan2(d[:, 1], d[:, 0])
+    poses = np.stack([pose_from_xyz_rpy(x, y, height, 0.0, 0.0, a) for (x, y), a in zip(xy, yaw)])
+    return poses
+
+
+def apply_odometry_drift(poses, rng: np.random.Generator, translation_std: float = 0.01,
+                         yaw_std_rad: float = 0.002) -> np.ndarray:
+    """Dead-reckoning drift: compose the relative motions between consecutive poses with a
+    random error (per metre travelled, std ``translation_std`` [m/m] in x,y and
+    ``yaw_std_rad`` [rad/m]), accumulating from the first pose, which stays exact."""
+    poses = np.asarray(poses, dtype=np.float64)
+    out = poses.copy()
+    for i in range(1, len(poses)):
+        rel = np.linalg.inv(poses[i - 1]) @ poses[i]
+        dist = float(np.linalg.norm(rel[:3, 3]))
+        noise = np.eye(4)
+        noise[:3, :3] = yaw_matrix(rng.normal(0.0, yaw_std_rad * dist))
+        noise[:2, 3] = rng.normal(0.0, translation_std * dist, 2)
+        out[i] = out[i - 1] @ rel @ noise
+    return out
