@@ -43,7 +43,11 @@ def make_T(R=np.eye(3), t=(0.0, 0.0, 0.0)) -> np.ndarray:
     return T
 
 
-def voxels_to_map(vox: dict, res=RES, capacity=None) -> mp.OccupancyMap:
+# One capacity for every small test map, so the tests share one compilation of each kernel.
+CAP = 8192
+
+
+def voxels_to_map(vox: dict, res=RES, capacity=CAP) -> mp.OccupancyMap:
     keys = np.array(list(vox.keys()), np.uint16).reshape(-1, 3)
     vals = np.array(list(vox.values()), np.float32)
     m = mp.from_leaves(morton.keys_to_codes(keys), np.full(len(vals), 16), vals, res,
@@ -95,64 +99,76 @@ def multi_depth_voxels(rng) -> dict:
     return vox
 
 
+def dense_grid(vox: dict):
+    """Voxels as a dense array over their bounding box (NaN = unknown) and its min key."""
+    keys = np.array(list(vox.keys()), np.int64)
+    kmin = keys.min(0)
+    grid = np.full(tuple(keys.max(0) - kmin + 1), np.nan)
+    grid[tuple((keys - kmin).T)] = np.array(list(vox.values()), np.float64)
+    return grid, kmin
+
+
+def grid_lookup(grid, kmin, k):
+    """Values at finest keys ``k (..., 3)``: NaN where unknown or outside the grid."""
+    i = k - kmin
+    inside = np.all((i >= 0) & (i < grid.shape), axis=-1)
+    i = np.where(inside[..., None], i, 0)
+    return np.where(inside, grid[i[..., 0], i[..., 1], i[..., 2]], np.nan)
+
+
 def alg7_reference(vox: dict, T, method="trilinear", space="probability", res=RES):
-    """Brute-force Alg. 7 (corrected) over the Alg. 4 bounding box, float64.
+    """Brute-force Alg. 7 (corrected): every destination voxel of the Alg. 4 bounding box
+    (plus one voxel margin), inverse-mapped with (R^T, -R^T t) in float64, 8 neighbours read
+    from a dense copy of the source.
 
     Returns ({dest key: log_odds}, ambiguous) where ``ambiguous`` lists destination keys whose
     source point lies within 1e-4 voxel of a voxel face (float32 may decide either way).
     """
     R, t = T[:3, :3], T[:3, 3]
+    grid, gmin = dense_grid(vox)
     keys = np.array(list(vox.keys()), np.int64)
     lo_c = (keys - OFF) * res
-    hi_c = lo_c + res
-    bmin, bmax = lo_c.min(0), hi_c.max(0)
-    corners = np.array([[bmax[0] if c & 1 else bmin[0], bmax[1] if c & 2 else bmin[1],
-                         bmax[2] if c & 4 else bmin[2]] for c in range(8)])
+    bmin, bmax = lo_c.min(0), lo_c.max(0) + res
+    corners = np.array(list(itertools.product(*zip(bmin, bmax))))
     moved = corners @ R.T + t
     kmin = np.floor(moved.min(0) / res).astype(np.int64) + OFF - 1
     kmax = np.floor(moved.max(0) / res).astype(np.int64) + OFF + 1
-    out, ambiguous = {}, []
-    grid = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(kmin, kmax)],
+    dest = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(kmin, kmax)],
                                 indexing="ij"), -1).reshape(-1, 3)
-    x_n = (grid - OFF + 0.5) * res
-    x_s = (x_n - t) @ R  # R^T (x_n - t), row-wise
+    x_n = (dest - OFF + 0.5) * res
+    x_s = (x_n - t) @ R  # rows of R^T (x_n - t)
     u = x_s / res - 0.5
-    base = np.floor(u)
-    f = u - base
-    for k, b, ff in zip(grid, base.astype(np.int64) + OFF, f):
-        center = tuple(int(v) for v in b + (ff >= 0.5))
-        if center not in vox:
-            continue
-        if np.any(np.abs(ff - 0.5) < 1e-4):
-            ambiguous.append(tuple(int(v) for v in k))
-        vals, known, w = [], [], []
-        for c in range(8):
-            o = np.array([c & 1, (c >> 1) & 1, (c >> 2) & 1])
-            nk = tuple(int(v) for v in b + o)
-            w.append(np.prod(np.where(o == 1, ff, 1 - ff)))
-            known.append(nk in vox)
-            vals.append(float(vox.get(nk, 0.0)))
-        vals, known, w = np.array(vals), np.array(known), np.array(w)
-        lc = float(vox[center])
+    f = u - np.floor(u)
+    base = np.floor(u).astype(np.int64) + OFF
+    lc = grid_lookup(grid, gmin, base + (f >= 0.5))
+    keep = ~np.isnan(lc)
+    dest, f, base, lc = dest[keep], f[keep], base[keep], lc[keep]
+    corners8 = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)])
+    vals = grid_lookup(grid, gmin, base[:, None, :] + corners8)  # (n, 8)
+    known = ~np.isnan(vals)
+    vals = np.where(known, vals, 0.0)
+    w = np.prod(np.where(corners8 == 1, f[:, None, :], 1 - f[:, None, :]), axis=-1)
+    contrib = w > 0
+    p = 1.0 / (1.0 + np.exp(-vals))
+    with np.errstate(divide="ignore", invalid="ignore"):
         if method == "nearest":
             v = lc
+        elif method == "thesis":
+            same = np.all(~contrib | (known & (vals == lc[:, None])), axis=1)
+            pv = np.clip(np.sum(w * np.where(known, p, 0.0), axis=1), 1e-7, 1 - 1e-7)
+            v = np.where(same, lc, np.log(pv / (1 - pv)))
         else:
-            contrib = w > 0
-            p = 1.0 / (1.0 + np.exp(-vals))
-            if method == "thesis":
-                same = np.all(~contrib | (known & (vals == lc)))
-                pv = np.sum(w * np.where(known, p, 0.0))
-                v = lc if same else np.log(np.clip(pv, 1e-7, 1 - 1e-7) / (1 - np.clip(pv, 1e-7, 1 - 1e-7)))
+            same = np.all(~(contrib & known) | (vals == lc[:, None]), axis=1)
+            wk = np.where(known, w, 0.0)
+            if space == "probability":
+                pv = np.sum(wk * p, axis=1) / wk.sum(1)
+                v = np.log(pv / (1 - pv))
             else:
-                same = np.all(~(contrib & known) | (vals == lc))
-                wk = np.where(known, w, 0.0)
-                if space == "probability":
-                    pv = np.sum(wk * p) / wk.sum()
-                    v = np.log(pv / (1 - pv))
-                else:
-                    v = np.sum(wk * vals) / wk.sum()
-                v = lc if same else v
-        out[tuple(int(x) for x in k)] = float(np.clip(v, L_MIN, L_MAX))
+                v = np.sum(wk * vals, axis=1) / wk.sum(1)
+            v = np.where(same, lc, v)
+    v = np.clip(v, L_MIN, L_MAX)
+    out = {tuple(int(a) for a in k): float(x) for k, x in zip(dest, v)}
+    ambiguous = [tuple(int(a) for a in k) for k in dest[np.any(np.abs(f - 0.5) < 1e-4, axis=1)]]
     return out, ambiguous
 
 
@@ -291,9 +307,15 @@ def test_pruned_output_is_maximal():
     vox = multi_depth_voxels(rng)
     m = voxels_to_map(vox)
     out = resample.transform_map(m, make_T(rot("z", 0.4), (0.05, 0.02, 0.0)))
-    again = tree.prune(out)
-    assert again.num_leaves == out.num_leaves
     lv = out.leaves()
+    # Maximal: no 8 siblings at one depth with equal log-odds are left (NumPy check).
+    for d in range(1, 17):
+        sel = lv.depths == d
+        parent = lv.codes[sel] >> np.uint64(3 * (17 - d))
+        vals = lv.log_odds[sel]
+        for par in np.unique(parent):
+            group = vals[parent == par]
+            assert not (group.size == 8 and np.all(group == group[0]))
     assert np.all(np.diff(lv.codes.astype(np.float64)) > 0)
     assert np.all(np.isfinite(lv.log_odds))
 
@@ -301,18 +323,23 @@ def test_pruned_output_is_maximal():
 def _round_trip_stats(vox, m, method, space="probability"):
     T = make_T(rot("z", 0.7) @ rot("x", 0.1), (0.23, -0.17, 0.05))
     there = resample.transform_map(m, T, method=method, space=space)
-    back = resample.transform_map(there, np.linalg.inv(T), method=method, space=space)
+    back = resample.transform_map(there.with_capacity(CAP), np.linalg.inv(T), method=method,
+                                  space=space)
     orig = occupied({k: float(v) for k, v in vox.items()})
     got = occupied(expand_dict(back))
     return iou(orig, got), len(got), len(orig)
 
 
-# Thresholds: measured on this room (1-voxel walls, free inside, unknown outside) and set
-# about 0.05 below the measured value (trilinear/prob 0.77, trilinear/log 0.85, nearest 0.78,
-# thesis 0.56). A round trip resamples twice; a wall one voxel thick at a 0.7 rad yaw loses
-# voxels where its centre line falls between two source centres, so even nearest is < 1.
-ROUND_TRIP_IOU = {("trilinear", "probability"): 0.72, ("trilinear", "log_odds"): 0.80,
-                  ("nearest", "probability"): 0.73, ("thesis", "probability"): 0.50}
+# Thresholds: measured on this room (walls, floor, ceiling and a box one voxel thick, free
+# inside, unknown outside; yaw 0.7 rad, roll 0.1 rad there and back): trilinear/probability
+# 0.937, trilinear/log-odds 0.900, nearest 0.899, thesis 0.805 (1302 vs 1080 of 1332 occupied
+# voxels kept). The set-up is deterministic; thresholds sit ~0.04 below the measurements to
+# absorb float32 differences between platforms. Why < 1: two resamplings of a wall one voxel
+# thick at an oblique angle move or drop voxels where the wall's centre plane passes between
+# voxel centres (nearest), blend occupied with free neighbours below p = 0.5 (trilinear), and
+# additionally blend with p = 0 outside the room (thesis, which loses most at the walls).
+ROUND_TRIP_IOU = {("trilinear", "probability"): 0.90, ("trilinear", "log_odds"): 0.86,
+                  ("nearest", "probability"): 0.86, ("thesis", "probability"): 0.76}
 
 
 @pytest.mark.parametrize("method,space", sorted(ROUND_TRIP_IOU))
@@ -347,17 +374,16 @@ def test_padding_invariance():
     big = m.with_capacity(4 * m.capacity)
     T = make_T(rot("z", 0.9), (0.11, 0.0, -0.05))
     a = resample.transform_map(m, T)
-    b = resample.transform_map(big, T)
-    assert tree.equal(a, b)
-    # chunking of destination bricks must not change the result either
-    c = resample.transform_map(m, T, chunk_bricks=7)
+    # Neither padding the source nor the chunking of destination bricks changes the result
+    # (one call covers both, to spend one compilation).
+    c = resample.transform_map(big, T, chunk_bricks=7)
     assert tree.equal(a, c)
 
 
 def test_no_recompilation_within_bucket():
     rng = np.random.default_rng(8)
     m1 = voxels_to_map(multi_depth_voxels(rng))
-    m2 = voxels_to_map(multi_depth_voxels(rng), capacity=m1.capacity)
+    m2 = voxels_to_map(multi_depth_voxels(rng))
     assert m1.capacity == m2.capacity
     T1 = make_T(rot("z", 0.3), (0.01, 0.02, 0.03))
     T2 = make_T(rot("z", 0.31), (0.02, 0.0, 0.01))
@@ -365,7 +391,7 @@ def test_no_recompilation_within_bucket():
     n = resample._transform_kernel._cache_size()
     resample.transform_map(m2, T2, out_capacity=1 << 15)
     assert resample._transform_kernel._cache_size() == n
-    pts = jnp.zeros((10, 3), jnp.float32)
+    pts = jnp.zeros((NP, 3), jnp.float32)
     resample.sample(m1, pts)
     n = resample._sample._cache_size()
     resample.sample(m2, pts + 0.3)
@@ -373,6 +399,8 @@ def test_no_recompilation_within_bucket():
 
 
 # ----------------------------------------------------------------------------- sample
+
+NP = 64  # one point-batch shape for every sample() call (one compilation)
 
 
 def _ref_sample(vox, p, space="probability"):
@@ -396,9 +424,11 @@ def test_sample_matches_reference(space):
     rng = np.random.default_rng(9)
     vox = multi_depth_voxels(rng)
     m = voxels_to_map(vox)
-    pts = rng.uniform([-1.5, -1.5, -1.5], [1.5, 0.0, 0.0], size=(300, 3)).astype(np.float32)
-    val, known = resample.sample(m, pts, space=space)
-    val, known = np.asarray(val), np.asarray(known)
+    pts = rng.uniform([-1.5, -1.5, -1.5], [1.5, 0.0, 0.0], size=(4 * NP, 3)).astype(np.float32)
+    out = [resample.sample(m, p, space=space) for p in pts.reshape(4, NP, 3)]
+    val = np.concatenate([np.asarray(v) for v, _ in out])
+    known = np.concatenate([np.asarray(k) for _, k in out])
+    assert 0.3 < known.mean() < 1.0
     for p, v, k in zip(pts.astype(np.float64), val, known):
         center = tuple(int(a) for a in np.floor(p / RES).astype(np.int64) + OFF)
         assert k == (center in vox)
@@ -410,7 +440,7 @@ def test_sample_at_centres_and_gradients():
     rng = np.random.default_rng(10)
     vox = multi_depth_voxels(rng)
     m = voxels_to_map(vox)
-    keys = np.array(list(vox.keys()))[:50]
+    keys = np.array(list(vox.keys()))[:NP]
     centres = ((keys - OFF + 0.5) * RES).astype(np.float32)
     val, known = resample.sample(m, centres, space="log_odds")
     assert np.all(np.asarray(known))
@@ -425,7 +455,7 @@ def test_sample_at_centres_and_gradients():
     # Away from voxel faces (offsets in [0.2, 0.8] of a voxel from a centre).
     pts = centres + RES * rng.uniform(0.2, 0.8, size=centres.shape).astype(np.float32)
     check_grads(lambda p: resample.sample(m, p, space="probability")[0], (jnp.asarray(pts),),
-                order=1, modes=("fwd", "rev"), eps=1e-3, atol=2e-2, rtol=2e-2)
+                order=1, modes=("rev",), eps=1e-3, atol=2e-2, rtol=2e-2)
     # Through a transform: the gradient of the mean occupancy w.r.t. a translation is finite.
     def score(t):
         return jnp.mean(resample.sample(m, jnp.asarray(pts) + t, space="probability")[0])
@@ -437,10 +467,12 @@ def test_sample_nearest_and_unknown():
     rng = np.random.default_rng(11)
     vox = multi_depth_voxels(rng)
     m = voxels_to_map(vox)
-    far = jnp.asarray([[50.0, 50.0, 50.0], [np.nan, 0.0, 0.0]], jnp.float32)
+    far = np.full((NP, 3), 50.0, np.float32)
+    far[1] = [np.nan, 0.0, 0.0]
+    far[2] = [-4000.0, 0.0, 0.0]  # outside the key range
     val, known = resample.sample(m, far, space="log_odds")
     assert not np.any(np.asarray(known)) and np.all(np.isfinite(np.asarray(val)))
-    keys = np.array(list(vox.keys()))[:20]
+    keys = np.array(list(vox.keys()))[:NP]
     pts = ((keys - OFF + 0.5) * RES + 0.3 * RES).astype(np.float32)
     val, known = resample.sample(m, pts, space="log_odds", method="nearest")
     np.testing.assert_array_equal(np.asarray(val), [vox[tuple(k)] for k in keys])
