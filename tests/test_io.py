@@ -174,6 +174,17 @@ def test_color_and_stamped_ot_read_occupancy(cls, tmp_path):
     assert read_header(path).tree_id == cls
     m = load(path)
     assert_same_leaves(m, tree)
+    # their .bt (id ColorOcTree / OcTreeStamped) has the OcTree body layout
+    tree.writeBinary(str(tmp_path / "c.bt"))
+    assert read_header(tmp_path / "c.bt").tree_id == cls
+    ref = pyoctomap.OcTree(0.1)
+    assert ref.readBinary(str(tmp_path / "c.bt"))
+    if cls == "OcTreeStamped":
+        # pyoctomap (not OctoMap) appends a timestamp trailer to stamped .bt files, which
+        # OctoMap's reader ignores: strict reading refuses it, lenient reading skips it
+        with pytest.raises(MapFormatError, match="unexpected bytes after the tree"):
+            load(tmp_path / "c.bt")
+    assert_same_leaves(load(tmp_path / "c.bt", strict=False), ref)
 
 
 def test_unknown_tree_id_is_refused(tmp_path):
@@ -335,6 +346,15 @@ def test_num_nodes_counts_inner_nodes_and_root():
     assert num_nodes(empty(0.1)) == 0
     two = from_leaves(np.array([0, 1], np.uint64), np.full(2, 16), np.ones(2, np.float32), 0.1)
     assert num_nodes(two) == 18
+
+
+def test_num_nodes_agrees_with_tree_module(tmp_path):
+    tree_mod = pytest.importorskip("octomerge_jax.tree")
+    tree, _ = octomap_tree("blocks", 0.1, seed=4)
+    ot, bt = write_reference(tree, tmp_path, "b")
+    for path in (ot, bt):
+        m = load(path)
+        assert tree_mod.num_nodes(m) == num_nodes(m) == read_header(path).size
 
 
 def test_save_is_atomic_and_checks_extension(tmp_path):

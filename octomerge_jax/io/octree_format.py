@@ -362,7 +362,8 @@ def _decode_body(buf, start, source, binary, tree_id, params, strict, claimed_si
     else:
         codes, depths, log_odds, nodes, end = _decode_ot(buf, start, source, tree_id)
     if strict and end != buf.size:
-        raise MapFormatError(source, end, f"{buf.size - end} unexpected bytes after the tree")
+        raise MapFormatError(source, end, f"{buf.size - end} unexpected bytes after the tree "
+                             "(OctoMap ignores them; strict=False / --lenient does too)")
     if strict and claimed_size is not None and claimed_size != nodes:
         raise MapFormatError(source, None, f"size mismatch: the header claims {claimed_size} "
                              f"nodes, the data holds {nodes}")
