@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -147,12 +148,10 @@ def _logit(p):
 
 def _corner_weights(f):
     """Trilinear weights (eqs. 3.6-3.13) of the 8 corners, ``f (..., 3)`` -> ``(..., 8)``."""
-    fx, fy, fz = f[..., 0:1], f[..., 1:2], f[..., 2:3]
-    c = jnp.asarray(_CORNERS, jnp.float32)
-    wx = jnp.where(c[:, 0] == 1, fx, 1.0 - fx)
-    wy = jnp.where(c[:, 1] == 1, fy, 1.0 - fy)
-    wz = jnp.where(c[:, 2] == 1, fz, 1.0 - fz)
-    return wx * wy * wz
+    w1 = jnp.stack([1.0 - f, f], axis=-1)  # (..., 3, 2)
+    wx, wy, wz = w1[..., 0, :], w1[..., 1, :], w1[..., 2, :]
+    w = wz[..., :, None, None] * wy[..., None, :, None] * wx[..., None, None, :]
+    return w.reshape(f.shape[:-1] + (8,))
 
 
 def _center_corner(f):
@@ -288,38 +287,43 @@ def sample(m: OccupancyMap, points, *, space: str = "probability", method: str =
 # ----------------------------------------------------------------------------- source view
 
 
-def _source_bricks(m: OccupancyMap):
-    """Host: dense table of source bricks holding leaves finer than a brick.
+def _source_table(m: OccupancyMap):
+    """Host: the brick-indexed view of the source.
 
-    Returns ``(codes (n,) uint64 sorted brick min-corner codes, values (n, 512) float32 in
-    local Morton order, NaN = unknown)``. Leaves at depth <= 13 are not copied: they cover
-    whole bricks and are found by ``searchsorted`` on the leaf codes.
+    Returns ``(table (rows * 512,) float32, rowtab (C,) int32, nan_row)``. ``table`` holds,
+    in local Morton order, one dense row per brick that contains leaves finer than a brick
+    (NaN = unknown), then one constant row per distinct value of the leaves that cover whole
+    bricks (depth <= 13), then NaN rows. ``rowtab[i]`` is the table row of leaf ``i``: its
+    brick's dense row, or its value's constant row. Memory: 2 KiB per dense brick.
     """
-    n = m.num_leaves
+    n, cap = m.num_leaves, m.capacity
     codes = morton.join_codes(np.asarray(m.code[:n]))
     depth = np.asarray(m.depth[:n])
     lo = np.asarray(m.log_odds[:n])
     fine = depth > _BRICK_DEPTH
     c, d, v = codes[fine], depth[fine], lo[fine]
     bcode = c & ~np.uint64(_BV - 1)
-    if bcode.size:
-        first = np.ones(bcode.shape, bool)
-        first[1:] = bcode[1:] != bcode[:-1]
-        ucodes = bcode[first]
-        slot = np.cumsum(first) - 1
-    else:
-        ucodes = np.zeros(0, np.uint64)
-        slot = np.zeros(0, np.int64)
-    table = np.full((ucodes.size, _BV), np.nan, np.float32)
+    first = np.ones(bcode.shape, bool)
+    first[1:] = bcode[1:] != bcode[:-1]
+    n_db = int(first.sum())
+    slot = np.cumsum(first) - 1
+    uniq, inv = np.unique(lo[~fine], return_inverse=True)
+    rows = bucket_capacity(n_db + uniq.size + 1, minimum=64)
+    table = np.full((rows, _BV), np.nan, np.float32)
     local = (c & np.uint64(_BV - 1)).astype(np.int64)
     for depth_l in (14, 15, 16):
         sel = d == depth_l
-        if not sel.any():
-            continue
-        span = 8 ** (_D - depth_l)
-        view = table.reshape(ucodes.size * (_BV // span), span)
-        view[slot[sel] * (_BV // span) + local[sel] // span] = v[sel, None]
-    return ucodes, table
+        if sel.any():
+            span = 8 ** (_D - depth_l)
+            view = table[:n_db].reshape(n_db * (_BV // span), span)
+            view[slot[sel] * (_BV // span) + local[sel] // span] = v[sel, None]
+    table[n_db:n_db + uniq.size] = uniq[:, None]
+    nan_row = n_db + uniq.size
+    rowtab = np.full(cap, nan_row, np.int32)
+    idx = np.arange(n)
+    rowtab[idx[fine]] = slot
+    rowtab[idx[~fine]] = n_db + inv.reshape(-1)
+    return table.reshape(-1), rowtab, nan_row, n_db
 
 
 def _source_brick_keys(m: OccupancyMap) -> np.ndarray:
@@ -353,24 +357,19 @@ def _plan_dest_bricks(src_bkeys: np.ndarray, T_key) -> np.ndarray:
         return np.zeros((0, 3), np.int64)
     centre = (src_bkeys.astype(np.float64) * _B + 3.5) @ R.T + t_key
     half = 4.0 * np.abs(R).sum(axis=1) + 1e-3  # image of the brick cube [8b - .5, 8b + 7.5]
-    kmin = np.ceil(centre - half)
-    kmax = np.floor(centre + half)
-    bmin = np.floor_divide(kmin, _B).astype(np.int64)
-    bmax = np.floor_divide(kmax, _B).astype(np.int64)
-    lo = bmin.min(axis=0)
-    hi = bmax.max(axis=0)
-    lo = np.maximum(lo, 0)
-    hi = np.minimum(hi, _KEY_MAX // _B - 1)
+    bmin = np.floor_divide(np.ceil(centre - half), _B).astype(np.int64)
+    bmax = np.floor_divide(np.floor(centre + half), _B).astype(np.int64)
+    lo = np.maximum(bmin.min(axis=0), 0)
+    hi = np.minimum(bmax.max(axis=0), _KEY_MAX // _B - 1)
     if np.any(hi < lo):
         return np.zeros((0, 3), np.int64)
     ext = hi - lo + 1
     total = int(np.prod(ext))
-    offs = _CORNERS_27
-    cand = bmin[:, None, :] + offs[None]  # (n, 27, 3)
+    cand = bmin[:, None, :] + _CORNERS_27[None]  # (n, 27, 3); image spans <= 3 bricks per axis
     ok = np.all(cand <= bmax[:, None, :], axis=-1) & np.all((cand >= lo) & (cand <= hi), axis=-1)
     cand = cand[ok] - lo
     lin = (cand[:, 2] * ext[1] + cand[:, 1]) * ext[0] + cand[:, 0]
-    if total <= (1 << 28):
+    if total <= (1 << 28):  # a brick-level bitmap (1 byte per 512 voxels of the bounding box)
         bitmap = np.zeros(total, bool)
         bitmap[lin] = True
         u = np.flatnonzero(bitmap)
@@ -382,64 +381,69 @@ def _plan_dest_bricks(src_bkeys: np.ndarray, T_key) -> np.ndarray:
 
 
 _CORNERS_27 = np.stack(np.meshgrid(np.arange(3), np.arange(3), np.arange(3), indexing="ij"),
-                       -1).reshape(-1, 3)[:, ::-1].astype(np.int64)
+                       -1).reshape(-1, 3)[:, ::-1].astype(np.int64)  # index x + 3 y + 9 z
 
 
 # ----------------------------------------------------------------------------- kernel
 
 
-def _morton9(k):
-    """Local Morton index (0..511) of the low 3 key bits per axis, ``k (..., 3)``."""
-    def spread(v):
-        return (v & 1) | ((v & 2) << 2) | ((v & 4) << 4)
-    k = k & 7
-    return spread(k[..., 0]) | (spread(k[..., 1]) << 1) | (spread(k[..., 2]) << 2)
+def _spread3bits(v):
+    """Bits (b2 b1 b0) -> (b2 0 0 b1 0 0 b0): one axis of a local Morton index."""
+    return (v & 1) | ((v & 2) << 2) | ((v & 4) << 4)
 
 
-def _window(m, dense_codes, dense_count, wb):
-    """Per destination brick, the 27 source bricks of its window ``wb (B, 3)`` (brick keys of
-    the window's min corner): ``(slot (B, 27) int32 into the dense table or -1,
-    uniform log-odds (B, 27) float32, NaN if unknown or dense)``."""
-    bkeys = wb[:, None, :] + jnp.asarray(_CORNERS_27, jnp.int32)  # (B, 27, 3)
+def _window_rows(m, rowtab, nan_row, wb):
+    """Table rows of the 27 source bricks of each destination brick's window (min-corner
+    brick keys ``wb (B, 3)``): ``(B, 27)`` int32, one ``searchsorted`` per window brick.
+
+    The first leaf at or after the brick's min corner either starts inside the brick (the
+    brick is dense, or it is that whole-brick leaf) or the previous leaf contains the brick
+    (a coarser leaf); otherwise the brick is unknown.
+    """
+    bkeys = wb[:, None, :] + jnp.asarray(_CORNERS_27, jnp.int32)
     in_range = jnp.all((bkeys >= 0) & (bkeys < _KEY_MAX // _B), axis=-1)
-    words = morton.keys_to_words(jnp.clip(bkeys, 0, _KEY_MAX // _B - 1) * _B)
-    row, known = tree.lookup_words(m, words)
-    whole = known & in_range & (m.depth[row] <= _BRICK_DEPTH)
-    uni = jnp.where(whole, m.log_odds[row], jnp.nan)
-    j = morton.searchsorted_words(dense_codes, words, side="left")
-    jc = jnp.clip(j, 0, dense_codes.shape[0] - 1)
-    hit = (j < dense_count) & morton.words_equal(dense_codes[jc], words) & in_range & ~whole
-    return jnp.where(hit, jc, -1), uni
+    q = morton.keys_to_words(jnp.clip(bkeys, 0, _KEY_MAX // _B - 1) * _B)
+    k = morton.searchsorted_words(m.code, q, side="left")
+    kc = jnp.clip(k, 0, m.capacity - 1)
+    starts_inside = (k < m.count) & morton.words_equal(
+        morton.truncate_words(m.code[kc], _BRICK_DEPTH), q)
+    kp = jnp.clip(k - 1, 0, m.capacity - 1)
+    covered = (k >= 1) & morton.words_equal(morton.truncate_words(q, m.depth[kp]), m.code[kp])
+    row = jnp.where(starts_inside, rowtab[kc], jnp.where(covered, rowtab[kp], nan_row))
+    return jnp.where(in_range, row, nan_row)
 
 
-def _resample_chunk(m, dense_codes, dense_count, dense, A, c, K_d, K_s, bkeys, bvalid,
-                    mode):
-    """Resample one chunk of destination bricks ``bkeys (B, 3)``: returns per voxel
-    ``(log_odds (B, 512), known (B, 512))`` in local Morton order."""
+def _resample_chunk(m, table, rowtab, nan_row, A, c, K_d, K_s, bkeys, bvalid, mode):
+    """Resample one chunk of destination bricks ``bkeys (B, 3)``: per voxel ``(log_odds
+    (B, 512) clamped, known (B, 512))`` in local Morton order."""
     nb = bkeys.shape[0]
     keys = bkeys[:, None, :] * _B + jnp.asarray(_LOCAL)  # (B, 512, 3) destination keys
-    rel = (keys - K_d).astype(jnp.float32)
-    u = rel @ A.T + c  # source key coordinates relative to K_s, centres at integers
+    u = (keys - K_d).astype(jnp.float32) @ A.T + c  # eq. 5.13 in key units, relative to K_s
     base = jnp.floor(u)
     f = u - base
     # Snap offsets within float32 noise of a lattice point (exact whole-voxel moves).
     up = f > 1.0 - _SNAP
     base = jnp.where(up, base + 1.0, base)
     f = jnp.where(up | (f < _SNAP), jnp.float32(0), f)
-    key0 = base.astype(jnp.int32) + K_s  # (B, 512, 3)
-    wb = jnp.floor_divide(jnp.min(key0, axis=1), _B)  # (B, 3)
-    slot_w, uni_w = _window(m, dense_codes, dense_count, wb)
-    nk = key0[:, :, None, :] + jnp.asarray(_CORNERS)  # (B, 512, 8, 3)
-    o = jnp.floor_divide(nk, _B) - wb[:, None, None, :]
-    in_win = jnp.all((o >= 0) & (o <= 2), axis=-1)
-    in_range = jnp.all((nk >= 0) & (nk < _KEY_MAX), axis=-1)
+    key0 = base.astype(jnp.int32) + K_s  # (B, 512, 3) key of corner 0
+    wb = jnp.floor_divide(jnp.min(key0, axis=1), _B)  # (B, 3) window origin (bricks)
+    rows = _window_rows(m, rowtab, nan_row, wb) * _BV  # (B, 27)
+    # Per axis, the two neighbour keys; corners combine them (c = bx + 2 by + 4 bz).
+    kk = key0[..., None] + jnp.arange(2, dtype=jnp.int32)  # (B, 512, 3, 2)
+    o = jnp.floor_divide(kk, _B) - wb[:, None, :, None]
+    ok = (kk >= 0) & (kk < _KEY_MAX) & (o >= 0) & (o <= 2)
     o = jnp.clip(o, 0, 2)
-    widx = (o[..., 0] + 3 * o[..., 1] + 9 * o[..., 2]).reshape(nb, -1)
-    slot = jnp.take_along_axis(slot_w, widx, axis=1).reshape(nb, _BV, 8)
-    uni = jnp.take_along_axis(uni_w, widx, axis=1).reshape(nb, _BV, 8)
-    flat = jnp.maximum(slot, 0) * _BV + _morton9(nk)
-    val = jnp.where(slot >= 0, dense[flat], uni)
-    known8 = in_win & in_range & ~jnp.isnan(val)
+    sp = _spread3bits(kk & 7)
+
+    def combine(x, y, z, op):
+        return op(op(z[..., :, None, None], y[..., None, :, None]), x[..., None, None, :])
+
+    widx = combine(o[..., 0, :], 3 * o[..., 1, :], 9 * o[..., 2, :], jnp.add)
+    local = combine(sp[..., 0, :], sp[..., 1, :] << 1, sp[..., 2, :] << 2, jnp.bitwise_or)
+    valid = combine(ok[..., 0, :], ok[..., 1, :], ok[..., 2, :], jnp.logical_and)
+    flat = jnp.take_along_axis(rows, widx.reshape(nb, -1), axis=1).reshape(nb, _BV, 8)
+    val = table[flat + local.reshape(nb, _BV, 8)]
+    known8 = valid.reshape(nb, _BV, 8) & ~jnp.isnan(val)
     _, lo, center_known, exact = _blend(val, known8, f, mode)
     lo = jnp.where(jnp.isnan(exact), lo, exact)
     lo = jnp.clip(lo, m.params.clamp_min_log_odds, m.params.clamp_max_log_odds)
@@ -463,8 +467,13 @@ def _brick_prune(lo, known):
 
 
 @functools.partial(jax.jit, static_argnames=("chunk", "out_capacity"))
-def _transform_kernel(m, dense_codes, dense_count, dense, A, c, K_d, K_s, bkeys, n_bricks,
-                      mode, chunk, out_capacity):
+def _transform_kernel(m, table, rowtab, nan_row, A, c, K_d, K_s, bkeys, n_bricks, mode,
+                      chunk, out_capacity):
+    """Scan over chunks of destination bricks; append each chunk's brick-pruned leaves.
+
+    Returns ``(map of brick-pruned leaves (capacity out_capacity), total leaves, number of
+    whole-brick (depth-13) leaves)``; ``total > out_capacity`` means overflow (rerun bigger).
+    """
     n_chunks = bkeys.shape[0] // chunk
     rows = chunk * _BV
     cap = out_capacity + rows
@@ -473,39 +482,89 @@ def _transform_kernel(m, dense_codes, dense_count, dense, A, c, K_d, K_s, bkeys,
         jnp.full((cap,), _D, jnp.int32),
         jnp.zeros((cap,), jnp.float32),
         jnp.int32(0),
+        jnp.int32(0),
     )
 
-    def compute(carry, i):
-        out_code, out_depth, out_lo, offset = carry
+    def compute(i):
         bk = jax.lax.dynamic_slice_in_dim(bkeys, i * chunk, chunk)
         bvalid = i * chunk + jnp.arange(chunk) < n_bricks
-        lo, known = _resample_chunk(m, dense_codes, dense_count, dense, A, c, K_d, K_s, bk,
-                                    bvalid, mode)
+        lo, known = _resample_chunk(m, table, rowtab, nan_row, A, c, K_d, K_s, bk, bvalid, mode)
         emit, depth = _brick_prune(lo, known)
+        return lo, emit, depth
+
+    def skip(i):
+        return (jnp.zeros((chunk, _BV), jnp.float32), jnp.zeros((chunk, _BV), bool),
+                jnp.full((chunk, _BV), _D, jnp.int32))
+
+    def step(carry, i):
+        out_code, out_depth, out_lo, offset, n13 = carry
+        # Padding chunks (past n_bricks) skip the work, so generous buckets cost little.
+        lo, emit, depth = jax.lax.cond(i * chunk < n_bricks, compute, skip, i)
+        bk = jax.lax.dynamic_slice_in_dim(bkeys, i * chunk, chunk)
         bwords = morton.keys_to_words(bk * _B)  # (B, 2); local Morton index fills low 9 bits
         vcode = jnp.stack([jnp.broadcast_to(bwords[:, None, 0], (chunk, _BV)),
                            bwords[:, None, 1] | jnp.arange(_BV, dtype=jnp.int32)[None, :]], -1)
         emit = emit.reshape(-1)
         n_emit = jnp.sum(emit, dtype=jnp.int32)
+        n13 = n13 + jnp.sum(emit & (depth.reshape(-1) == _BRICK_DEPTH), dtype=jnp.int32)
         (idx,) = jnp.nonzero(emit, size=rows, fill_value=0)
         start = jnp.minimum(offset, out_capacity)
         out_code = jax.lax.dynamic_update_slice_in_dim(out_code, vcode.reshape(-1, 2)[idx], start, 0)
         out_depth = jax.lax.dynamic_update_slice_in_dim(out_depth, depth.reshape(-1)[idx], start, 0)
         out_lo = jax.lax.dynamic_update_slice_in_dim(out_lo, lo.reshape(-1)[idx], start, 0)
-        return out_code, out_depth, out_lo, offset + n_emit
+        return (out_code, out_depth, out_lo, offset + n_emit, n13), None
 
-    def step(carry, i):
-        # Padding chunks (past n_bricks) are skipped, so generous buckets cost no compute.
-        return jax.lax.cond(i * chunk < n_bricks, compute, lambda cr, _: cr, carry, i), None
-
-    (code, depth, lo, total), _ = jax.lax.scan(step, init, jnp.arange(n_chunks))
+    (code, depth, lo, total, n13), _ = jax.lax.scan(step, init, jnp.arange(n_chunks))
     count = jnp.minimum(total, out_capacity)
     valid = jnp.arange(out_capacity) < count
     code = jnp.where(valid[:, None], code[:out_capacity], jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
     depth = jnp.where(valid, depth[:out_capacity], _D)
     lo = jnp.where(valid, lo[:out_capacity], jnp.float32(0))
     out = OccupancyMap(code, depth, lo, count, m.params, m.resolution, m.tree_depth)
-    return out, total
+    return out, total, n13
+
+
+def _compact_rows(keep, cap, *arrays_fill):
+    """Rows where ``keep`` moved to the front (order kept) of arrays of ``cap`` rows."""
+    pos = jnp.where(keep, jnp.cumsum(keep) - 1, cap)
+    out = []
+    for x, fill in arrays_fill:
+        buf = jnp.full((cap,) + x.shape[1:], fill, x.dtype)
+        out.append(buf.at[pos].set(x, mode="drop"))
+    return out
+
+
+@functools.partial(jax.jit, static_argnames=("cap13",))
+def _prune_brick_output(m: OccupancyMap, cap13: int) -> OccupancyMap:
+    """Maximal prune of brick-pruned output: only whole-brick (depth-13) leaves can merge
+    further (finer leaves are maximal inside their brick already), so prune that subset with
+    ``tree.prune`` and merge it back with the finer leaves by code (two ``searchsorted``)."""
+    cap = m.capacity
+    valid = m.valid_mask()
+    is13 = valid & (m.depth == _BRICK_DEPTH)
+    sentinel = jnp.array([morton.SENTINEL_HI, 0], jnp.int32)
+    c13, d13, l13 = _compact_rows(is13, cap13, (m.code, sentinel), (m.depth, _D),
+                                  (m.log_odds, jnp.float32(0)))
+    n13 = jnp.sum(is13, dtype=jnp.int32)
+    sub = tree.prune(OccupancyMap(c13, d13, l13, n13, m.params, m.resolution, m.tree_depth))
+    fine = valid & ~is13
+    # fine row -> its rank among fine rows + number of pruned coarse rows before it
+    pos_f = jnp.cumsum(fine) - 1 + morton.searchsorted_words(sub.code, m.code, side="left")
+    pos_f = jnp.where(fine, pos_f, cap)
+    # coarse row -> its rank + number of fine rows before it (all rows before it minus the
+    # depth-13 rows before it; a merged node starts where its first child started)
+    j = jnp.arange(cap13, dtype=jnp.int32)
+    before_all = morton.searchsorted_words(m.code, sub.code, side="left")
+    before_13 = morton.searchsorted_words(c13, sub.code, side="left")
+    pos_c = jnp.where(j < sub.count, j + before_all - before_13, cap)
+    code = jnp.zeros_like(m.code).at[:, 0].set(morton.SENTINEL_HI)
+    code = code.at[pos_f].set(m.code, mode="drop").at[pos_c].set(sub.code, mode="drop")
+    depth = jnp.full_like(m.depth, _D).at[pos_f].set(m.depth, mode="drop")
+    depth = depth.at[pos_c].set(sub.depth, mode="drop")
+    lo = jnp.zeros_like(m.log_odds).at[pos_f].set(m.log_odds, mode="drop")
+    lo = lo.at[pos_c].set(sub.log_odds, mode="drop")
+    count = jnp.sum(fine, dtype=jnp.int32) + sub.count
+    return OccupancyMap(code, depth, lo, count, m.params, m.resolution, m.tree_depth)
 
 
 def _key_transform(T, resolution):
@@ -515,6 +574,57 @@ def _key_transform(T, resolution):
     o = morton.KEY_OFFSET - 0.5
     t_key = T[:3, 3] / resolution + o - R @ np.full(3, o)
     return R, t_key
+
+
+class _Plan(NamedTuple):
+    """Host planning result of ``transform_map`` (inputs of the jitted kernel)."""
+
+    args: tuple
+    chunk: int
+    out_capacity: int
+    n_dest_bricks: int
+    n_dense_bricks: int
+
+
+def _plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: int,
+          out_capacity: int | None) -> _Plan:
+    """Host: destination bricks, the source's brick table and the key-frame constants."""
+    R, t_key = _key_transform(T, m.resolution)
+    dest = _plan_dest_bricks(_source_brick_keys(m), (R, t_key))
+    table, rowtab, nan_row, n_db = _source_table(m)
+    # Relative coordinates keep float32 precision: u_rel = R^T (k - K_d) + c, with
+    # K_s = round(R^T (K_d - t_key)) so that |c| <= 0.5.
+    n_b = dest.shape[0]
+    K_d = np.round(dest.mean(axis=0) * _B).astype(np.int64) if n_b else np.zeros(3, np.int64)
+    u_s = R.T @ (K_d.astype(np.float64) - t_key)
+    K_s = np.round(u_s).astype(np.int64)
+    c = u_s - K_s
+    b_cap = max(bucket_capacity(n_b, minimum=1024), chunk)
+    b_cap = int(math.ceil(b_cap / chunk) * chunk)
+    bkeys = np.zeros((b_cap, 3), np.int32)
+    bkeys[:n_b] = dest
+    if out_capacity is None:
+        out_capacity = bucket_capacity(2 * m.num_leaves + 8 * n_b, minimum=1 << 15)
+    args = (m, jnp.asarray(table), jnp.asarray(rowtab), jnp.int32(nan_row),
+            jnp.asarray(R.T, jnp.float32), jnp.asarray(c, jnp.float32),
+            jnp.asarray(K_d, jnp.int32), jnp.asarray(K_s, jnp.int32), jnp.asarray(bkeys),
+            jnp.int32(n_b), jnp.int32(_mode_index(method, space)))
+    return _Plan(args, chunk, int(out_capacity), n_b, n_db)
+
+
+def _run(plan: _Plan) -> OccupancyMap:
+    """Run the kernel (growing the output if the guess overflowed), then prune maximally."""
+    out, total, n13 = _transform_kernel(*plan.args, chunk=plan.chunk,
+                                        out_capacity=plan.out_capacity)
+    total = int(total)
+    if total > plan.out_capacity:
+        out, total, n13 = _transform_kernel(*plan.args, chunk=plan.chunk,
+                                            out_capacity=bucket_capacity(total))
+    cap = bucket_capacity(total)
+    if cap < out.capacity:  # prune only what the kernel filled
+        out = OccupancyMap(out.code[:cap], out.depth[:cap], out.log_odds[:cap], out.count,
+                           out.params, out.resolution, out.tree_depth)
+    return _prune_brick_output(out, cap13=bucket_capacity(int(n13)))
 
 
 def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
@@ -557,41 +667,8 @@ def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
             f"T_dst_src: the transformed map spans {p_min.round(3).tolist()} .. "
             f"{p_max.round(3).tolist()} m, outside OctoMap's key range +-{limit:g} m at "
             f"resolution {res:g} m")
-    R, t_key = _key_transform(T, res)
-    dest = _plan_dest_bricks(_source_brick_keys(m), (R, t_key))
-    dcodes, dtable = _source_bricks(m)
-    n_db = dcodes.size
-    db_cap = bucket_capacity(n_db, minimum=64)
-    dense_codes = np.zeros((db_cap, 2), np.int32)
-    dense_codes[:, 0] = morton.SENTINEL_HI
-    dense_codes[:n_db] = morton.split_codes(dcodes)
-    dense = np.full((db_cap * _BV,), np.nan, np.float32)
-    dense[: n_db * _BV] = dtable.reshape(-1)
-    # Relative coordinates keep float32 precision: u_rel = R^T (k - K_d) + c, with
-    # K_s = round(R^T K_d - R^T t_key) so that |c| <= 0.5.
-    n_b = dest.shape[0]
-    K_d = np.round(dest.mean(axis=0) * _B).astype(np.int64) if n_b else np.zeros(3, np.int64)
-    u_s = R.T @ (K_d.astype(np.float64) - t_key)
-    K_s = np.round(u_s).astype(np.int64)
-    c = u_s - K_s
-    chunk = int(chunk_bricks)
-    b_cap = max(bucket_capacity(n_b, minimum=1024), chunk)
-    b_cap = int(math.ceil(b_cap / chunk) * chunk)
-    bkeys = np.zeros((b_cap, 3), np.int32)
-    bkeys[:n_b] = dest
-    if out_capacity is None:
-        out_capacity = bucket_capacity(2 * m.num_leaves + 8 * n_b, minimum=1 << 15)
-    args = (m, jnp.asarray(dense_codes), jnp.int32(n_db), jnp.asarray(dense),
-            jnp.asarray(R.T, jnp.float32), jnp.asarray(c, jnp.float32),
-            jnp.asarray(K_d, jnp.int32), jnp.asarray(K_s, jnp.int32), jnp.asarray(bkeys),
-            jnp.int32(n_b), jnp.int32(_mode_index(method, space)))
-    out, total = _transform_kernel(*args, chunk=chunk,
-                                   out_capacity=int(out_capacity))
-    total = int(total)
-    if total > out_capacity:
-        out, total = _transform_kernel(*args, chunk=chunk,
-                                       out_capacity=bucket_capacity(total))
-    out = tree.prune(out)
+    plan = _plan(m, T, method, space, int(chunk_bricks), out_capacity)
+    out = _run(plan)
     n = out.num_leaves
     cap = bucket_capacity(n)
     if cap < out.capacity:
