@@ -592,3 +592,37 @@ def _recursive_ot(data: bytes):
     node(0, 0)
     assert pos == len(data)
     return out
+
+
+@pytest.mark.slow
+def test_real_size_map_round_trips_through_octomap(tmp_path):
+    """~0.5M leaves at several depths: OctoMap reads our files and re-writes them byte for
+    byte; we read OctoMap's files back to the same leaves."""
+    rng = np.random.default_rng(12)
+    side = 128
+    grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    keys = (grid + morton.KEY_OFFSET - side // 2).astype(np.uint16)
+    # values constant on random 4^3 blocks, 2% noisy voxels: pruning yields depths 14..16
+    coarse = rng.choice(np.array([-2.0, -0.4, 0.85, 3.5], np.float32), size=(side // 4,) * 3)
+    values = coarse[grid[:, 0] // 4, grid[:, 1] // 4, grid[:, 2] // 4]
+    noisy = rng.random(values.size) < 0.02
+    values = np.where(noisy, rng.normal(size=values.size).astype(np.float32), values)
+    codes = morton.keys_to_codes(keys)
+    order = np.argsort(codes)
+    codes, values = codes[order], values[order].astype(np.float32)
+    full = from_leaves(codes, np.full(codes.size, 16), values, 0.05)
+    import octomerge_jax.tree as tree_mod
+
+    m = tree_mod.prune(full)
+    assert m.num_leaves > 400_000 and len(set(m.leaves().depths.tolist())) >= 3
+    save(m, tmp_path / "ours.ot")
+    save(m, tmp_path / "ours.bt")
+    ref = pyoctomap.OcTree(0.05).read(str(tmp_path / "ours.ot"))
+    assert ref.size() == num_nodes(m) and ref.getNumLeafNodes() == m.num_leaves
+    ref.write(str(tmp_path / "ref.ot"))
+    assert (tmp_path / "ref.ot").read_bytes() == (tmp_path / "ours.ot").read_bytes()
+    ref.writeBinary(str(tmp_path / "ref.bt"))  # ML + prune in OctoMap
+    assert (tmp_path / "ref.bt").read_bytes() == (tmp_path / "ours.bt").read_bytes()
+    back = load(tmp_path / "ref.ot").leaves()
+    for a, b in zip(back, m.leaves()):
+        np.testing.assert_array_equal(a, b)
