@@ -1,0 +1,381 @@
+"""Tests of ``octomerge_jax.fuse`` against independent references: a brute-force NumPy
+fusion over expanded voxels with its own maximal prune, OctoMap (pyoctomap) voxel updates,
+and a greedy interval decomposition."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from octomerge_jax import fuse as F
+from octomerge_jax import map as omap
+from octomerge_jax import morton
+
+RES = 0.1
+PARAMS = omap.OccupancyParams()
+LMIN = float(PARAMS.clamp_min_log_odds)
+LMAX = float(PARAMS.clamp_max_log_odds)
+U1 = np.uint64(1)
+
+
+# ----------------------------------------------------------------------------- references
+
+
+def span(depth):
+    return U1 << (np.uint64(3) * (np.uint64(16) - np.asarray(depth).astype(np.uint64)))
+
+
+def ref_expand(codes, depths, values):
+    """Leaves -> (finest voxel codes, values), sorted."""
+    n = span(depths).astype(np.int64)
+    c = np.repeat(codes.astype(np.uint64), n)
+    first = np.repeat(np.cumsum(n) - n, n)
+    c = c + (np.arange(c.size) - first).astype(np.uint64)
+    return c, np.repeat(np.asarray(values, np.float32), n)
+
+
+def ref_prune(codes, depths, values):
+    """Maximal prune (8 equal siblings -> parent, bottom-up, never into the root)."""
+    codes = np.asarray(codes, np.uint64)
+    depths = np.asarray(depths, np.int64)
+    values = np.asarray(values, np.float32)
+    for d in range(16, 1, -1):
+        at = depths == d
+        parent = codes[at] & ~(span(d - 1) - U1)
+        vals = values[at]
+        uniq, start, cnt = np.unique(parent, return_index=True, return_counts=True)
+        # values equal within the group: min == max (np.unique sorts; groups are contiguous
+        # because codes are sorted)
+        vmin = np.minimum.reduceat(vals, start) if vals.size else vals
+        vmax = np.maximum.reduceat(vals, start) if vals.size else vals
+        ok = (cnt == 8) & (vmin == vmax)
+        if not ok.any():
+            continue
+        collapse = np.isin(parent, uniq[ok])
+        idx = np.flatnonzero(at)
+        keep = np.ones(codes.size, bool)
+        keep[idx[collapse]] = False
+        new_codes = np.concatenate([codes[keep], uniq[ok]])
+        new_depths = np.concatenate([depths[keep], np.full(int(ok.sum()), d - 1)])
+        new_values = np.concatenate([values[keep], vmin[ok]])
+        order = np.argsort(new_codes, kind="stable")
+        codes, depths, values = new_codes[order], new_depths[order], new_values[order]
+    return codes, depths.astype(np.int32), values
+
+
+def ref_fuse(maps, rule="sum", weights=None, lmin=LMIN, lmax=LMAX):
+    """Expand every map to depth 16, combine per voxel, clamp, prune maximally.
+    ``sum`` folds map by map with a clamp after each map, as sequential ``fuse`` calls."""
+    weights = [1.0] * len(maps) if weights is None else weights
+    vox = [ref_expand(m.leaves().codes, m.leaves().depths, m.leaves().log_odds) for m in maps]
+    allc = np.unique(np.concatenate([c for c, _ in vox]))
+    acc = np.zeros(allc.size, np.float32)
+    known = np.zeros(allc.size, bool)
+    for k, (c, v) in enumerate(vox):
+        pos = np.searchsorted(allc, c)
+        has = np.zeros(allc.size, bool)
+        has[pos] = True
+        val = np.zeros(allc.size, np.float32)
+        val[pos] = v
+        if rule == "sum":
+            new = np.where(known, acc + val, val)
+            new = np.clip(new, np.float32(lmin), np.float32(lmax)) if k > 0 else new
+        elif rule == "max":
+            new = np.where(known, np.maximum(acc, val), val)
+        else:
+            w = np.float32(weights[k])
+            new = np.where(known, acc + w * val, w * val)
+        acc = np.where(has, new, np.clip(acc, lmin, lmax) if (rule == "sum" and k > 0) else acc)
+        known |= has
+    acc = np.clip(acc, np.float32(lmin), np.float32(lmax)).astype(np.float32)
+    return ref_prune(allc, np.full(allc.size, 16), acc)
+
+
+def greedy_cells(s, e):
+    out = []
+    while s < e:
+        k = 16
+        while k > 0 and (s % (8 ** k) or s + 8 ** k > e):
+            k -= 1
+        out.append((s, 16 - k))
+        s += 8 ** k
+    return out
+
+
+# ----------------------------------------------------------------------------- generators
+
+VALUES = np.array([-2.0, -1.2, -0.4, 0.0, 0.4, 0.85, 1.7, 3.5], np.float32)
+
+
+def random_map(rng, roots, p_leaf=0.35, p_unknown=0.2, values=VALUES, min_depth=12,
+               capacity=None):
+    """A random map: under each root node (code, depth) recursively split / leaf / unknown,
+    leaves at depths ``min_depth``..16; values from a small set so equal siblings occur."""
+    codes, depths, vals = [], [], []
+
+    def rec(code, d):
+        r = rng.random()
+        if d == 16 or (d >= min_depth and r < p_leaf):
+            codes.append(code)
+            depths.append(d)
+            vals.append(values[rng.integers(values.size)])
+            return
+        if d >= min_depth and r < p_leaf + p_unknown:
+            return
+        step = int(span(d + 1))
+        for c in range(8):
+            rec(code + c * step, d + 1)
+
+    for code, d in roots:
+        rec(int(code), int(d))
+    m = omap.from_leaves(np.array(codes, np.uint64), np.array(depths, np.int32),
+                         np.array(vals, np.float32), RES, capacity=capacity)
+    return m
+
+
+def roots_near_origin(rng, n=2, depth=13):
+    base = morton.keys_to_codes(np.array([32768, 32768, 32768], np.uint16))
+    cell = int(span(depth))
+    picks = rng.choice(16, size=n, replace=False)
+    return [(int(base) + int(p) * cell, depth) for p in picks]
+
+
+def assert_same_leaves(m, ref):
+    lv = m.leaves()
+    codes, depths, vals = ref
+    assert lv.codes.size == codes.size, (lv.codes.size, codes.size)
+    np.testing.assert_array_equal(lv.codes, codes)
+    np.testing.assert_array_equal(lv.depths, depths)
+    np.testing.assert_array_equal(lv.log_odds, vals)
+
+
+def pair(seed, **kw):
+    rng = np.random.default_rng(seed)
+    roots = roots_near_origin(rng, n=3, depth=13)
+    m1 = random_map(rng, roots[:2], **kw)
+    m2 = random_map(rng, roots[1:], **kw)
+    return m1, m2
+
+
+# ----------------------------------------------------------------------------- tests
+
+
+def test_gap_decomposition_matches_greedy():
+    rng = np.random.default_rng(1)
+    S, E = [0, 0, 8, 1, 7 * 8 ** 15], [1 << 48, 3 * 8 ** 15, 16, 8 ** 16, 1 << 48]
+    for _ in range(400):
+        a, b = sorted(int(x) for x in rng.integers(0, 1 << 48, 2))
+        ka, kb = rng.integers(0, 17, 2)
+        a, b = (a >> (3 * ka)) << (3 * ka), (b >> (3 * kb)) << (3 * kb)
+        if a < b:
+            S.append(a)
+            E.append(b)
+    s = morton.split_codes(np.array(S, np.uint64))
+    e = morton.split_codes(np.array(E, np.uint64))
+    total = np.asarray(jax.jit(lambda s, e: F._gap_plan(s[:, 0], s[:, 1], e[:, 0], e[:, 1])[-1])(s, e))
+    want = [greedy_cells(a, b) for a, b in zip(S, E)]
+    np.testing.assert_array_equal(total, [len(w) for w in want])
+    # every cell of every interval, in one batch
+    owner = np.repeat(np.arange(len(S)), total)
+    t = np.arange(owner.size) - np.repeat(np.cumsum(total) - total, total)
+    cell = jax.jit(F._gap_cell)
+    h, lo, d = cell(jnp.asarray(s[owner, 0]), jnp.asarray(s[owner, 1]), jnp.asarray(e[owner, 0]),
+                    jnp.asarray(e[owner, 1]), jnp.asarray(t, jnp.int32))
+    got = list(zip(morton.join_codes(np.stack([h, lo], -1)).tolist(), np.asarray(d).tolist()))
+    assert got == [c for w in want for c in w]
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), rule=st.sampled_from(F.RULES))
+def test_fuse_matches_bruteforce(seed, rule):
+    m1, m2 = pair(seed)
+    weights = (0.75, 1.5) if rule == "weighted" else (1.0, 1.0)
+    out = F.fuse(m1, m2, rule, weights=weights)
+    assert_same_leaves(out, ref_fuse([m1, m2], rule, weights))
+
+
+def test_fuse_same_depth_identical_leaves():
+    m1, _ = pair(3)
+    out = F.fuse(m1, m1)
+    ref = ref_fuse([m1, m1])
+    assert_same_leaves(out, ref)
+    lv = m1.leaves()
+    want = ref_prune(lv.codes, lv.depths, np.clip(lv.log_odds, LMIN, LMAX))
+    assert_same_leaves(F.fuse(m1, m1, "max"), want)
+
+
+def test_report_counts_cases():
+    # M1: one depth-13 leaf A, one depth-15 leaf B; M2: a voxel inside A (case 3), a depth-14
+    # leaf containing B (case 4), a leaf equal to nothing (case 1) and a leaf equal to ... none
+    base = int(morton.keys_to_codes(np.array([32768] * 3, np.uint16)))
+    s13, s14, s15 = int(span(13)), int(span(14)), int(span(15))
+    a, b = base, base + s13 + s15  # b inside the depth-14 cell base + s13
+    m1 = omap.from_leaves(np.array([a, b], np.uint64), [13, 15], [0.4, -0.4], RES)
+    c2 = np.array([a + 5, base + s13, base + 2 * s13, base + 3 * s13], np.uint64)
+    m2 = omap.from_leaves(c2, [16, 14, 14, 13], [0.85, 0.85, -0.4, 1.7], RES)
+    m3 = omap.from_leaves(np.array([base + 3 * s13], np.uint64), [13], [0.4], RES)
+    m1 = F.fuse(m1, m3, prune=False)  # add an equal-depth leaf to M1
+    out, rep = F.fuse(m1, m2, return_report=True)
+    assert_same_leaves(out, ref_fuse([m1, m2]))
+    r = rep.host()
+    assert r["leaves_in"] == [3, 4]
+    assert r["same_depth"] == 1
+    assert r["split"] == [1, 1]
+    assert not r["overflow"]
+    assert r["refined_cells"] == out.num_leaves + r["pruned"]
+
+
+def test_deep_split_is_local_and_reprunes():
+    # a depth-2 leaf holding 8^14 voxels against 3 finest voxels inside it: the refinement has
+    # a few hundred cells (never 8^14), and adding 0 log-odds prunes back to the one leaf.
+    base = int(morton.keys_to_codes(np.array([32768] * 3, np.uint16)))
+    m1 = omap.from_leaves(np.array([base], np.uint64), [2], [1.7], RES)
+    vox = np.array([base + 12345, base + 8 ** 10 + 7, base + 8 ** 14 - 1], np.uint64)
+    zero = omap.from_leaves(vox, [16] * 3, [0.0] * 3, RES)
+    refined, rep = F.fuse(m1, zero, prune=False, return_report=True)
+    n = refined.num_leaves
+    assert n < 3 * 7 * 15
+    lv = refined.leaves()
+    assert int(np.sum(span(lv.depths).astype(np.float64))) == 8 ** 14
+    assert np.all(lv.codes[1:] >= lv.codes[:-1] + span(lv.depths[:-1]))
+    assert_same_leaves(F.fuse(m1, zero), (np.array([base], np.uint64), np.array([2]), np.float32([1.7])))
+    # with a non-zero update the three voxels carry the sum; everything else keeps 1.7
+    upd = omap.from_leaves(vox, [16] * 3, [0.4] * 3, RES)
+    out = F.fuse(m1, upd)
+    lv = out.leaves()
+    fin = lv.depths == 16
+    np.testing.assert_array_equal(np.sort(lv.codes[fin & (lv.log_odds == np.float32(2.1))]), vox)
+    assert int(np.sum(span(lv.depths).astype(np.float64))) == 8 ** 14
+    assert not bool(rep.overflow)
+
+
+def test_fuse_with_empty_is_identity_and_symmetry():
+    m1, m2 = pair(7)
+    e = omap.empty(RES)
+    pruned = ref_prune(m1.leaves().codes, m1.leaves().depths,
+                       np.clip(m1.leaves().log_odds, LMIN, LMAX))
+    assert_same_leaves(F.fuse(m1, e), pruned)
+    assert_same_leaves(F.fuse(e, m1), pruned)
+    ab, ba = F.fuse(m1, m2), F.fuse(m2, m1)
+    assert_same_leaves(ab, (ba.leaves().codes, ba.leaves().depths, ba.leaves().log_odds))
+
+
+def test_clamping_bounds_hold():
+    m1, m2 = pair(11, values=np.float32([-2.0, 3.5, 3.0, -1.9]))
+    out = F.fuse(m1, m2)
+    lo = out.leaves().log_odds
+    assert lo.min() >= np.float32(LMIN) and lo.max() <= np.float32(LMAX)
+    assert np.any(lo == np.float32(LMAX)) and np.any(lo == np.float32(LMIN))
+
+
+def test_padding_invariance():
+    m1, m2 = pair(5)
+    a = F.fuse(m1, m2)
+    b = F.fuse(m1.with_capacity(4 * m1.capacity), m2.with_capacity(2 * m2.capacity))
+    assert_same_leaves(b, (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
+    c = F.fuse(m1, m2, capacity=4 * a.capacity)
+    assert_same_leaves(c, (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
+
+
+def test_no_recompile_within_bucket():
+    m1, m2 = pair(21)
+    m3, m4 = pair(22)
+    cap1, cap2 = max(m1.capacity, m3.capacity), max(m2.capacity, m4.capacity)
+    m1, m3 = m1.with_capacity(cap1), m3.with_capacity(cap1)
+    m2, m4 = m2.with_capacity(cap2), m4.with_capacity(cap2)
+    F.fuse(m1, m2, capacity=4096, weights=(1.0, 0.5), rule="weighted")
+    before = F._fuse_pair._cache_size()
+    out = F.fuse(m3, m4, capacity=4096, weights=(0.3, 2.0), rule="weighted")
+    assert F._fuse_pair._cache_size() == before
+    assert_same_leaves(out, ref_fuse([m3, m4], "weighted", (0.3, 2.0)))
+
+
+def test_overflow_is_reported_not_silent():
+    m1, m2 = pair(9)
+    out, rep = F.fuse(m1, m2, capacity=256, return_report=True, prune=False)
+    need = int(rep.refined_cells)
+    assert need > 256 and bool(rep.overflow)
+    with pytest.raises(ValueError, match="capacity 256"):
+        F.fuse(m1, m2, capacity=256)
+
+
+def test_resolution_mismatch_names_both():
+    m1 = omap.empty(0.1)
+    m2 = omap.empty(0.05)
+    with pytest.raises(ValueError, match=r"m1.resolution = 0.1 m.*m2.resolution = 0.05 m"):
+        F.fuse(m1, m2)
+    with pytest.raises(ValueError, match="rule"):
+        F.fuse(m1, m1, rule="mean")
+
+
+def test_vmap_over_stacked_pairs():
+    pairs = [pair(s) for s in (31, 32, 33)]
+    cap1 = max(a.capacity for a, _ in pairs)
+    cap2 = max(b.capacity for _, b in pairs)
+    A = [a.with_capacity(cap1) for a, _ in pairs]
+    B = [b.with_capacity(cap2) for _, b in pairs]
+    stack = lambda ms: jax.tree.map(lambda *x: jnp.stack(x), *ms)  # noqa: E731
+    out, rep = jax.vmap(lambda a, b: F.fuse(a, b, capacity=4096, return_report=True))(stack(A), stack(B))
+    for i, (a, b) in enumerate(zip(A, B)):
+        mi = jax.tree.map(lambda x: x[i], out)
+        assert not bool(rep.overflow[i])
+        assert_same_leaves(mi, ref_fuse([a, b]))
+
+
+def test_fuse_many_equals_fold_and_reference():
+    rng = np.random.default_rng(41)
+    roots = roots_near_origin(rng, n=4, depth=13)
+    maps = [random_map(rng, [roots[k], roots[(k + 1) % 4]]) for k in range(4)]
+    fold = maps[0]
+    for m in maps[1:]:
+        fold = F.fuse(fold, m)
+    many, rep = F.fuse_many(maps, return_report=True)
+    assert_same_leaves(many, (fold.leaves().codes, fold.leaves().depths, fold.leaves().log_odds))
+    assert_same_leaves(many, ref_fuse(maps))
+    for rule, w in (("max", None), ("weighted", (0.5, 1.0, 2.0, 0.25))):
+        assert_same_leaves(F.fuse_many(maps, rule, weights=w), ref_fuse(maps, rule, w))
+    assert rep.host()["leaves_in"] == [m.num_leaves for m in maps]
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1))
+def test_fuse_many_pair_equals_fuse(seed):
+    m1, m2 = pair(seed, values=np.float32([-2.0, 3.5, 1.7, -1.0, 0.4]))
+    a, ra = F.fuse(m1, m2, return_report=True)
+    b, rb = F.fuse_many([m1, m2], return_report=True)
+    assert_same_leaves(b, (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
+    ha, hb = ra.host(), rb.host()
+    for key in ("leaves_in", "leaves_out", "same_depth", "split"):
+        assert ha[key] == hb[key], key
+
+
+def test_against_octomap_updates():
+    pyoctomap = pytest.importorskip("pyoctomap")
+    rng = np.random.default_rng(123)
+    small = np.float32([-0.4, -0.2, 0.2, 0.4, 0.85])  # sums stay inside the clamps
+    roots = roots_near_origin(rng, n=3, depth=14)
+    m1 = random_map(rng, roots[:2], values=small, min_depth=14)
+    m2 = random_map(rng, roots[1:], values=small, min_depth=14)
+    ot = pyoctomap.OcTree(RES)
+    for m in (m1, m2):
+        c, v = ref_expand(m.leaves().codes, m.leaves().depths, m.leaves().log_odds)
+        pts = morton.keys_to_coords(morton.codes_to_keys(c), RES)
+        for p, val in zip(pts, v):
+            ot.updateNode(np.asarray(p, np.float64), float(val))
+    out = F.fuse(m1, m2)
+    lv = out.leaves()
+    got = {}
+    for it in ot.begin_leafs():
+        key = tuple(int(k) for k in it.getKey())
+        depth = int(it.getDepth())
+        node = ot.search(np.asarray(it.getCoordinate(), np.float64))
+        got[(key, depth)] = np.float32(node.getLogOdds())
+    assert len(got) == lv.codes.size
+    for key, depth, val in zip(lv.keys, lv.depths, lv.log_odds):
+        # OctoMap iterator keys are node-centre keys: min corner + half the node's key span
+        half = (1 << (16 - int(depth))) >> 1
+        ck = tuple(int(k) + half for k in key)
+        assert got[(ck, int(depth))] == val
