@@ -182,8 +182,9 @@ def _blend(lo8, known8, f, mode):
     lo8 = jnp.where(known8, lo8, jnp.float32(0))
     w = _corner_weights(f)
     cc = _center_corner(f)
-    lo_c = jnp.take_along_axis(lo8, cc[..., None], axis=-1)[..., 0]
-    k_c = jnp.take_along_axis(known8, cc[..., None], axis=-1)[..., 0]
+    pick = cc[..., None] == jnp.arange(8, dtype=jnp.int32)  # one-hot select (no gather)
+    lo_c = jnp.sum(jnp.where(pick, lo8, jnp.float32(0)), axis=-1)
+    k_c = jnp.any(pick & known8, axis=-1)
     contributes = w > 0
 
     def trilinear(in_log_odds):
@@ -426,11 +427,11 @@ def _resample_chunk(m, table, rowtab, nan_row, A, c, K_d, K_s, bkeys, bvalid, mo
     base = jnp.where(up, base + 1.0, base)
     f = jnp.where(up | (f < _SNAP), jnp.float32(0), f)
     key0 = base.astype(jnp.int32) + K_s  # (B, 512, 3) key of corner 0
-    wb = jnp.floor_divide(jnp.min(key0, axis=1), _B)  # (B, 3) window origin (bricks)
+    wb = jnp.right_shift(jnp.min(key0, axis=1), 3)  # (B, 3) window origin (bricks)
     rows = _window_rows(m, rowtab, nan_row, wb) * _BV  # (B, 27)
     # Per axis, the two neighbour keys; corners combine them (c = bx + 2 by + 4 bz).
     kk = key0[..., None] + jnp.arange(2, dtype=jnp.int32)  # (B, 512, 3, 2)
-    o = jnp.floor_divide(kk, _B) - wb[:, None, :, None]
+    o = jnp.right_shift(kk, 3) - wb[:, None, :, None]
     ok = (kk >= 0) & (kk < _KEY_MAX) & (o >= 0) & (o <= 2)
     o = jnp.clip(o, 0, 2)
     sp = _spread3bits(kk & 7)
@@ -441,8 +442,9 @@ def _resample_chunk(m, table, rowtab, nan_row, A, c, K_d, K_s, bkeys, bvalid, mo
     widx = combine(o[..., 0, :], 3 * o[..., 1, :], 9 * o[..., 2, :], jnp.add)
     local = combine(sp[..., 0, :], sp[..., 1, :] << 1, sp[..., 2, :] << 2, jnp.bitwise_or)
     valid = combine(ok[..., 0, :], ok[..., 1, :], ok[..., 2, :], jnp.logical_and)
-    flat = jnp.take_along_axis(rows, widx.reshape(nb, -1), axis=1).reshape(nb, _BV, 8)
-    val = table[flat + local.reshape(nb, _BV, 8)]
+    flat = jnp.take_along_axis(rows, widx.reshape(nb, -1), axis=1, mode="promise_in_bounds")
+    val = table.at[flat.reshape(nb, _BV, 8) + local.reshape(nb, _BV, 8)].get(
+        mode="promise_in_bounds")  # indices are in bounds by construction
     known8 = valid.reshape(nb, _BV, 8) & ~jnp.isnan(val)
     _, lo, center_known, exact = _blend(val, known8, f, mode)
     lo = jnp.where(jnp.isnan(exact), lo, exact)
