@@ -1,0 +1,76 @@
+"""``octomerge batch MANIFEST.csv --out-dir DIR``: many merges, resumable, optionally on Dask."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ._common import CliError
+
+EPILOG = """manifest (CSV with a header; inputs relative to the manifest, outputs to --out-dir):
+  map1,map2,output,x,y,z,roll,pitch,yaw
+  run1/robotA.bt,run1/robotB.bt,run1_merged.bt,1.5,-0.8,0,0,0,0.785
+  run2/robotA.ot,run2/robotB.ot,run2_merged.ot,0,0,0,0,0,0
+Optional true_x..true_yaw columns add the thesis errors eps_r/eps_t to the summary.
+
+examples:
+  octomerge batch pairs.csv --out-dir merged/                 # in this process
+  octomerge batch pairs.csv --out-dir merged/ --workers 4     # local Dask cluster, 4 processes
+  octomerge batch pairs.csv --out-dir merged/ --scheduler tcp://10.0.0.5:8786
+
+A Dask cluster: on the scheduler machine run `dask scheduler`, on each worker machine
+`dask worker tcp://10.0.0.5:8786 --nthreads 1` in an environment with octomerge_jax installed
+(same version) and the map files at the same paths (shared filesystem). Workers with a GPU and
+jax[cuda12] installed run the kernels on the GPU automatically. Re-running the same command
+skips pairs whose output exists (resume); every pair's status is in DIR/summary.csv, each
+merged map gets a JSON report next to it. Exit code 0 if every pair merged or was skipped,
+6 if some failed (the others are complete).
+"""
+
+EXIT_SOME_FAILED = 6
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "batch", help="merge many pairs from a CSV manifest (resumable, Dask cluster optional)",
+        description="Merge every pair listed in MANIFEST (CSV) into --out-dir. Finished outputs "
+                    "are written atomically and skipped on a re-run; bad pairs are recorded in "
+                    "summary.csv while the rest complete.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("manifest", type=Path, metavar="MANIFEST.csv")
+    p.add_argument("--out-dir", type=Path, required=True, metavar="DIR")
+    p.add_argument("--workers", type=int, metavar="N", help="local Dask worker processes (0: in this process)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler, e.g. tcp://host:8786")
+    p.add_argument("--no-resume", action="store_true", help="redo pairs whose output exists")
+    p.add_argument("--refine", choices=("icp", "multi", "none"))
+    p.add_argument("--config", type=Path, metavar="FILE", help="TOML/JSON settings (octomerge dump-config)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..batch import run_manifest
+    from ..config import MergeConfig, load_config
+
+    if not args.manifest.is_file():
+        raise CliError(f"{args.manifest}: no such file")
+    if args.workers is not None and args.workers < 0:
+        raise CliError(f"--workers must be >= 0, got {args.workers}", 2)
+    try:
+        cfg = load_config(args.config) if args.config else MergeConfig()
+        if args.refine:
+            cfg = cfg.replace(registration={"refine": args.refine})
+        rows = run_manifest(args.manifest, args.out_dir, config=cfg, workers=args.workers,
+                            scheduler=args.scheduler, progress=not args.no_progress,
+                            resume=False if args.no_resume else None)
+    except (ValueError, FileNotFoundError) as err:
+        raise CliError(str(err)) from None
+    counts: dict = {}
+    for r in rows:
+        counts[r["status"]] = counts.get(r["status"], 0) + 1
+    print(f"{len(rows)} pairs: " + ", ".join(f"{v} {k}" for k, v in sorted(counts.items()))
+          + f"; summary in {args.out_dir / 'summary.csv'}")
+    for r in rows:
+        if r["status"] == "error":
+            print(f"  failed: {Path(r['map1']).name} + {Path(r['map2']).name}: {r['message']}")
+    return EXIT_SOME_FAILED if counts.get("error") else 0

@@ -1,0 +1,207 @@
+"""``octomerge merge IN1 IN2 OUT [x y z roll pitch yaw]``: merge map 2 into map 1's frame."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+from ._common import CliError
+
+# exit codes (also in the epilog)
+EXIT_INPUT = 1
+EXIT_RESOLUTION = 3
+EXIT_NO_OVERLAP = 4
+EXIT_ICP = 5
+_KIND_EXIT = {"resolution": EXIT_RESOLUTION, "no_overlap": EXIT_NO_OVERLAP, "icp_failed": EXIT_ICP,
+              "not_converged": EXIT_ICP, "empty": EXIT_NO_OVERLAP, "transform": EXIT_INPUT}
+
+EPILOG = """examples:
+  octomerge merge robot1.bt robot2.bt merged.bt --xyz 1.5 -0.8 0 --rpy 0 0 0.785
+  octomerge merge robot1.ot robot2.ot merged.ot 1.5 -0.8 0 0 0 0.785   # thesis argument order
+  octomerge merge a.bt b.bt out.bt --rpy 0 0 45 --degrees --refine multi --report r.json --figure icp.png
+  octomerge merge a.bt b.bt out.bt --refine none --xyz 2 0 0            # trust the guess
+
+The guess T_1_2 maps map 2's frame into map 1's: x y z in metres, roll pitch yaw in radians
+(R = Rz(yaw) Ry(pitch) Rx(roll), as OctoMap's Pose6D). OUT is .bt (maximum likelihood) or .ot
+(log-odds) and is in map 1's frame. Outputs are written atomically; inputs are never overwritten.
+
+exit codes: 0 merged (an unconverged ICP is a warning unless --strict), 1 bad input (missing or
+unreadable file, NaN guess, ...), 2 usage, 3 resolutions differ (see --resample), 4 no overlap
+under the guess, 5 ICP failed (too few correspondences, or not converged with --strict).
+"""
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "merge", help="merge two maps (ICP-refined transform, trilinear resampling, log-odds fusion)",
+        description="Register map 2 to map 1 from an initial guess (occupied clouds, overlap, "
+                    "ICP), resample map 2 into map 1's frame and fuse the log-odds (J. Jessup 2013).",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("in1", type=Path, metavar="IN1", help="map 1 (.bt/.ot): the reference frame")
+    p.add_argument("in2", type=Path, metavar="IN2", help="map 2 (.bt/.ot)")
+    p.add_argument("out", type=Path, metavar="OUT", help="merged map to write (.bt or .ot)")
+    p.add_argument("pose", type=float, nargs="*", metavar="x y z roll pitch yaw",
+                   help="initial guess in the thesis's positional order (6 numbers)")
+    g = p.add_argument_group("initial guess T_1_2 (map 2 frame -> map 1 frame)")
+    g.add_argument("--xyz", type=float, nargs=3, metavar=("X", "Y", "Z"), help="translation [m]")
+    g.add_argument("--rpy", type=float, nargs=3, metavar=("R", "P", "Y"), help="roll pitch yaw [rad]")
+    g.add_argument("--degrees", action="store_true", help="angles are in degrees")
+    g.add_argument("--true-xyz", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="ground truth translation: report thesis errors eps_r/eps_t")
+    g.add_argument("--true-rpy", type=float, nargs=3, metavar=("R", "P", "Y"), help="ground truth rotation")
+    a = p.add_argument_group("pipeline (override --config)")
+    a.add_argument("--refine", choices=("icp", "multi", "none"),
+                   help="icp (default), multi (multi-hypothesis ICP for poor guesses) or none")
+    a.add_argument("--overlap", choices=("voxel", "bbox", "none"), help="points fed to ICP (default voxel)")
+    a.add_argument("--interpolation", choices=("trilinear", "nearest", "thesis"),
+                   help="resampling of map 2 (default trilinear)")
+    a.add_argument("--rule", choices=("sum", "max", "weighted"), help="log-odds fusion rule (default sum)")
+    a.add_argument("--max-iterations", type=int, help="ICP iteration limit")
+    a.add_argument("--resample", action="store_true",
+                   help="allow maps of different resolutions (map 2 is resampled onto map 1's grid)")
+    a.add_argument("--strict", action="store_true", help="fail (exit 5) if ICP does not converge")
+    a.add_argument("--config", type=Path, metavar="FILE", help="TOML/JSON settings (octomerge dump-config)")
+    o = p.add_argument_group("outputs")
+    o.add_argument("--report", type=Path, metavar="JSON", help="write the MergeReport as JSON")
+    o.add_argument("--figure", type=Path, metavar="PNG", help="overlap clouds before/after ICP (Fig. 7.6)")
+    o.add_argument("--map-figure", type=Path, metavar="PNG", help="merged map, occupancy-shaded (Fig. 7.7)")
+    o.add_argument("--icp-figure", type=Path, metavar="PNG", help="ICP convergence per iteration")
+    o.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
+    o.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    p.set_defaults(func=run)
+
+
+def guess_from_args(args, name: str = "initial guess"):
+    """``(x, y, z, roll, pitch, yaw)`` [m, rad] from positional numbers or --xyz/--rpy."""
+    pose = list(args.pose or [])
+    if pose and (args.xyz or args.rpy):
+        raise CliError("give the guess either as 6 positional numbers or with --xyz/--rpy, not both", 2)
+    if pose and len(pose) != 6:
+        raise CliError(f"the positional guess needs 6 numbers (x y z roll pitch yaw), got {len(pose)}", 2)
+    xyz = pose[:3] if pose else list(args.xyz or (0.0, 0.0, 0.0))
+    rpy = pose[3:] if pose else list(args.rpy or (0.0, 0.0, 0.0))
+    vals = [*xyz, *rpy]
+    for label, v in zip(("x", "y", "z", "roll", "pitch", "yaw"), vals):
+        if not math.isfinite(v):
+            raise CliError(f"{name}: {label} = {v} is not a finite number", EXIT_INPUT)
+    if args.degrees:
+        rpy = [math.radians(v) for v in rpy]
+    return (*xyz, *rpy)
+
+
+def config_from_args(args):
+    from ..config import MergeConfig, load_config
+
+    cfg = load_config(args.config) if getattr(args, "config", None) else MergeConfig()
+    reg, tr, fu = {}, {}, {}
+    for key, section in (("refine", reg), ("overlap", reg), ("interpolation", tr), ("rule", fu),
+                         ("max_iterations", reg)):
+        v = getattr(args, key, None)
+        if v is not None:
+            section[key] = v
+    if getattr(args, "resample", False):
+        tr["resample_resolution"] = True
+    if getattr(args, "strict", False):
+        reg["on_not_converged"] = "error"
+    return cfg.replace(registration=reg, transform=tr, fuse=fu)
+
+
+def _check_output(out: Path, inputs, force: bool, what: str = "OUT"):
+    from .._fileutil import check_not_input
+
+    if out.suffix.lower() not in (".bt", ".ot"):
+        raise CliError(f"{out}: {what} must end in .bt or .ot")
+    check_not_input(out, inputs, force=False)  # never overwrite an input, even with --force
+    if out.exists() and not force:
+        raise CliError(f"{out} exists; pass --force to overwrite it")
+    if str(out.parent) and not out.parent.exists():
+        raise CliError(f"{out}: folder {out.parent} does not exist")
+
+
+def run(args) -> int:
+    from ..io import MapFormatError, load, save
+    from ..pipeline import MergeError, merge, transform_from_xyz_rpy
+
+    for p in (args.in1, args.in2):
+        if not p.is_file():
+            raise CliError(f"{p}: no such file")
+    _check_output(args.out, [args.in1, args.in2], args.force)
+    for extra in (args.report, args.figure, args.map_figure, args.icp_figure):
+        if extra is not None:
+            _check_output_side(extra, [args.in1, args.in2, args.out])
+    guess = guess_from_args(args)
+    truth = None
+    if args.true_xyz or args.true_rpy:
+        ns = argparse.Namespace(pose=[], xyz=args.true_xyz, rpy=args.true_rpy, degrees=args.degrees)
+        truth = transform_from_xyz_rpy(*guess_from_args(ns, "ground truth"))
+    try:
+        cfg = config_from_args(args)
+    except (ValueError, FileNotFoundError) as err:
+        raise CliError(str(err)) from None
+    t0 = time.perf_counter()
+    try:
+        m1 = load(args.in1)
+        m2 = load(args.in2)
+    except MapFormatError as err:
+        raise CliError(str(err)) from None
+    t_load = time.perf_counter() - t0
+    say = (lambda *a: None) if args.quiet else (lambda *a: print(*a))
+    say(f"map 1: {args.in1} ({m1.num_leaves:,} leaves, {m1.resolution:g} m)")
+    say(f"map 2: {args.in2} ({m2.num_leaves:,} leaves, {m2.resolution:g} m)")
+    try:
+        merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess), T_1_2_true=truth, config=cfg)
+    except MergeError as err:
+        raise CliError(str(err), _KIND_EXIT.get(err.kind, EXIT_INPUT)) from None
+    t1 = time.perf_counter()
+    save(merged, args.out)
+    report = report.with_timings(load=t_load, save=time.perf_counter() - t1)
+    if args.report:
+        report.to_json(args.report)
+    write_figures(report, merged, args.figure, args.map_figure, args.icp_figure, cfg, truth)
+    say(report.summary())
+    say(f"wrote {args.out} ({merged.num_leaves:,} leaves)"
+        + "".join(f", {p}" for p in (args.report, args.figure, args.map_figure, args.icp_figure) if p))
+    for w in report.warnings:
+        print(f"octomerge merge: warning: {w}", file=sys.stderr)
+    return 0
+
+
+def _check_output_side(path: Path, inputs):
+    from .._fileutil import check_not_input
+
+    check_not_input(path, inputs, force=False)
+    if str(path.parent) and not path.parent.exists():
+        raise CliError(f"{path}: folder {path.parent} does not exist")
+
+
+def write_figures(report, merged, figure, map_figure, icp_figure, cfg, truth=None):
+    """Figures for a finished merge (each optional)."""
+    if figure is not None:
+        from ..plots import plot_overlap
+
+        eps = None
+        if report.epsilon_r is not None:
+            eps = ((report.epsilon_r_init, report.epsilon_t_init), (report.epsilon_r, report.epsilon_t))
+        plot_overlap(report.points_1, report.points_2, report.T_1_2_init, report.T_1_2, figure,
+                     epsilons=eps)
+    if map_figure is not None:
+        from ..plots import plot_map
+
+        plot_map(merged, map_figure, title="merged map (map 1 frame)")
+    if icp_figure is not None:
+        if report.icp is None:
+            print("octomerge merge: warning: --icp-figure needs ICP (refine is none); skipped",
+                  file=sys.stderr)
+        else:
+            from ..pipeline import icp_trace
+            from ..plots import plot_icp_convergence
+
+            start = report.T_1_2_init
+            if report.refine == "multi":  # trace the winning hypothesis
+                start = report.icp_result.hypotheses[int(report.icp_result.best_index)]
+            tr = icp_trace(report.points_1, report.points_2, start, report.resolution, cfg,
+                           T_1_2_true=truth)
+            plot_icp_convergence(tr, icp_figure)

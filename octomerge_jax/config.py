@@ -1,0 +1,353 @@
+"""Every parameter of the merge pipeline, as nested dataclass sections that dump to and load from
+TOML (stdlib ``tomllib`` to read, a small writer here) or JSON.
+
+The sections mirror the pipeline (thesis Ch. 6): ``registration`` (Alg. 1-3: occupied points,
+overlap, ICP), ``transform`` (Alg. 4-7), ``fuse`` (Alg. 8), ``batch`` (many pairs) and ``demo``
+(the simulated two-robot job). ``octomerge dump-config`` prints the defaults; every subcommand
+takes ``--config FILE``; command-line flags override the file.
+
+    cfg = MergeConfig()                                  # defaults
+    cfg = load_config("merge.toml")                      # partial files are fine
+    cfg = cfg.replace(registration={"refine": "multi"})  # functional update
+    text = dumps_toml(cfg)
+
+Unknown keys and wrong types raise ``ValueError`` naming the file and the key, so a typo never
+silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+import types
+import typing
+from pathlib import Path
+
+__all__ = [
+    "RegistrationConfig",
+    "TransformConfig",
+    "FuseConfig",
+    "BatchConfig",
+    "DemoConfig",
+    "MergeConfig",
+    "REFINE_CHOICES",
+    "OVERLAP_CHOICES",
+    "ON_NOT_CONVERGED_CHOICES",
+    "config_from_dict",
+    "config_to_dict",
+    "dumps_toml",
+    "load_config",
+    "save_config",
+]
+
+REFINE_CHOICES = ("icp", "multi", "none")
+OVERLAP_CHOICES = ("voxel", "bbox", "none")
+ON_NOT_CONVERGED_CHOICES = ("warn", "error", "use_initial")
+
+
+@dataclasses.dataclass(frozen=True)
+class RegistrationConfig:
+    """Alg. 1-3: occupied-leaf clouds, commonly mapped subsets, ICP refinement.
+
+    - ``refine``: ``"icp"`` (one ICP from the guess), ``"multi"`` (multi-hypothesis ICP over
+      yaw/roll/pitch perturbations of the guess; for poor guesses) or ``"none"`` (trust the guess).
+    - ``overlap``: ``"voxel"`` (points near the other map's points under the guess),
+      ``"bbox"`` (thesis Alg. 2: intersection of bounding boxes) or ``"none"`` (all points).
+    - ``overlap_margin``: [m] slack for the overlap test (``None``: ICP's max correspondence
+      distance, so every point ICP could match is kept).
+    - ``min_overlap_points``: fewer common points in either map means "no overlap" (an error).
+    - ``max_correspondence_distance`` / ``min_correspondence_distance`` [m]: ICP's distance
+      schedule (``None``: 10 and 2 voxels), halved by ``shrink_factor`` each time the change of
+      the transform falls below ``transformation_epsilon`` (``None``: resolution / 60).
+    - ``max_iterations``, ``min_inliers``, ``cell_capacity``: ICP limits (see ``registration.icp``).
+    - ``yaw_step_rad``, ``roll_pitch_offset_rad``: hypotheses of ``refine="multi"``.
+    - ``on_not_converged``: ICP stopped at ``max_iterations``: ``"warn"`` (use its transform,
+      report ``converged = false``), ``"error"`` (fail) or ``"use_initial"`` (merge with the
+      guess). Too few inliers is always an error unless ``refine="none"``.
+    """
+
+    refine: str = "icp"
+    overlap: str = "voxel"
+    overlap_margin: float | None = None
+    min_overlap_points: int = 30
+    max_correspondence_distance: float | None = None
+    min_correspondence_distance: float | None = None
+    shrink_factor: float = 0.5
+    transformation_epsilon: float | None = None
+    max_iterations: int = 100
+    min_inliers: int = 6
+    cell_capacity: int = 8
+    yaw_step_rad: float = math.pi / 6
+    roll_pitch_offset_rad: float = 0.1
+    on_not_converged: str = "warn"
+
+
+@dataclasses.dataclass(frozen=True)
+class TransformConfig:
+    """Alg. 4-7: resampling map 2 into map 1's frame (``resample.transform_map``).
+
+    - ``interpolation``: ``"trilinear"`` (unknown neighbours left out), ``"nearest"`` or
+      ``"thesis"`` (unknown neighbours weigh as p = 0, Appendix A.2).
+    - ``space``: interpolate in ``"probability"`` (thesis) or ``"log_odds"``.
+    - ``chunk_bricks``: destination bricks (8^3 voxels) per scan step (memory/speed trade-off).
+    - ``resample_resolution``: maps of different resolutions are an error unless this is true;
+      then map 2 is resampled onto map 1's voxel grid (trilinear samples at map 1's voxel
+      centres).
+    """
+
+    interpolation: str = "trilinear"
+    space: str = "probability"
+    chunk_bricks: int = 64
+    resample_resolution: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class FuseConfig:
+    """Alg. 8 (``fuse.fuse`` / ``fuse.fuse_many``): ``rule`` ``"sum"`` (eq. 5.15, independent
+    maps), ``"max"`` (maps sharing data) or ``"weighted"`` with ``weights`` (one per map)."""
+
+    rule: str = "sum"
+    weights: tuple[float, ...] = (1.0, 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchConfig:
+    """``octomerge batch``: ``workers`` local processes/threads (0: run in this process),
+    ``scheduler`` a Dask address (``tcp://host:8786``) or ``""``, ``resume`` skips pairs whose
+    output exists, ``group_by_bucket`` runs pairs of one capacity bucket through one jitted
+    ``vmap`` call (``merge_batch``) instead of one by one."""
+
+    workers: int = 0
+    scheduler: str = ""
+    resume: bool = True
+    group_by_bucket: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoConfig:
+    """``octomerge demo``: the simulated two-robot job (``sim.make_two_robot_maps``).
+
+    ``error_xyz`` [m] and ``error_rpy_rad`` perturb the true ``T_1_2`` to make the erroneous
+    initial guess (default: the thesis's Fig. 7.6 case, a yaw error of 0.265 rad, plus 0.2 m).
+    """
+
+    scene: str = "lab"
+    resolution: float = 0.1
+    spacing: float = 0.5
+    seed: int = 0
+    error_xyz: tuple[float, float, float] = (0.2, -0.1, 0.0)
+    error_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.265)
+
+
+@dataclasses.dataclass(frozen=True)
+class MergeConfig:
+    """All parameters (one section per pipeline stage)."""
+
+    registration: RegistrationConfig = RegistrationConfig()
+    transform: TransformConfig = TransformConfig()
+    fuse: FuseConfig = FuseConfig()
+    batch: BatchConfig = BatchConfig()
+    demo: DemoConfig = DemoConfig()
+
+    def replace(self, **sections) -> "MergeConfig":
+        """Copy with sections updated: ``cfg.replace(registration={"refine": "none"})`` (a dict
+        updates only the named keys; a section dataclass replaces the section)."""
+        changes = {}
+        for name, value in sections.items():
+            current = getattr(self, name, None)
+            if not dataclasses.is_dataclass(current):
+                raise ValueError(f"MergeConfig has no section {name!r}")
+            if isinstance(value, dict):
+                value = _section_from_dict(type(current), {**config_to_dict(current), **value}, name)
+            changes[name] = value
+        out = dataclasses.replace(self, **changes)
+        validate(out)
+        return out
+
+
+def validate(cfg: MergeConfig) -> None:
+    """Raise ``ValueError`` naming the key for out-of-range or unknown choices."""
+    r, t, f = cfg.registration, cfg.transform, cfg.fuse
+    _choice(r.refine, REFINE_CHOICES, "registration.refine")
+    _choice(r.overlap, OVERLAP_CHOICES, "registration.overlap")
+    _choice(r.on_not_converged, ON_NOT_CONVERGED_CHOICES, "registration.on_not_converged")
+    _choice(t.interpolation, ("trilinear", "nearest", "thesis"), "transform.interpolation")
+    _choice(t.space, ("probability", "log_odds"), "transform.space")
+    _choice(f.rule, ("sum", "max", "weighted"), "fuse.rule")
+    for key, value in (("registration.max_iterations", r.max_iterations),
+                       ("registration.min_inliers", r.min_inliers),
+                       ("registration.cell_capacity", r.cell_capacity),
+                       ("transform.chunk_bricks", t.chunk_bricks)):
+        if value < 1:
+            raise ValueError(f"{key} must be >= 1, got {value}")
+    if r.min_overlap_points < 0:
+        raise ValueError(f"registration.min_overlap_points must be >= 0, got {r.min_overlap_points}")
+    if not 0.0 < r.shrink_factor < 1.0:
+        raise ValueError(f"registration.shrink_factor must lie in (0, 1), got {r.shrink_factor}")
+    for key in ("overlap_margin", "max_correspondence_distance", "min_correspondence_distance",
+                "transformation_epsilon"):
+        v = getattr(r, key)
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise ValueError(f"registration.{key} must be a positive number of metres, got {v}")
+    if cfg.batch.workers < 0:
+        raise ValueError(f"batch.workers must be >= 0, got {cfg.batch.workers}")
+    if not cfg.demo.resolution > 0:
+        raise ValueError(f"demo.resolution must be positive, got {cfg.demo.resolution}")
+
+
+def _choice(value, choices, key):
+    if value not in choices:
+        raise ValueError(f"{key} must be one of {', '.join(map(repr, choices))}, got {value!r}")
+
+
+# ----------------------------------------------------------------------------- dict <-> dataclass
+
+
+def config_to_dict(obj) -> dict:
+    """A config (or section) as a plain nested dict; ``None`` values are left out (TOML has no
+    null, and a missing key means the default)."""
+    out = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            out[f.name] = config_to_dict(v)
+        elif v is None:
+            continue
+        elif isinstance(v, tuple):
+            out[f.name] = list(v)
+        else:
+            out[f.name] = v
+    return out
+
+
+def _coerce(value, annotation, key: str):
+    """Check/convert one value against its field annotation (str, int, float, bool, tuples,
+    ``X | None``)."""
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(value, args[0], key)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"{key}: expected a list, got {value!r}")
+        args = typing.get_args(annotation)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], key) for v in value)
+        if len(value) != len(args):
+            raise ValueError(f"{key}: expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(v, a, key) for v, a in zip(value, args))
+    if annotation is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"{key}: expected true or false, got {value!r}")
+        return value
+    if annotation is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if annotation is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{key}: expected a number, got {value!r}")
+        return float(value)
+    if annotation is str:
+        if not isinstance(value, str):
+            raise ValueError(f"{key}: expected a string, got {value!r}")
+        return value
+    raise TypeError(f"{key}: unsupported annotation {annotation!r}")  # pragma: no cover
+
+
+def _section_from_dict(cls, data: dict, prefix: str):
+    if not isinstance(data, dict):
+        raise ValueError(f"{prefix}: expected a table of settings, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"unknown setting {prefix + '.' if prefix else ''}{unknown[0]} "
+                         f"(known: {', '.join(sorted(names))})")
+    kwargs = {}
+    for name, value in data.items():
+        key = f"{prefix}.{name}" if prefix else name
+        ann = hints[name]
+        if dataclasses.is_dataclass(ann):
+            kwargs[name] = _section_from_dict(ann, value, key)
+        else:
+            kwargs[name] = _coerce(value, ann, key)
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict) -> MergeConfig:
+    """A ``MergeConfig`` from a (possibly partial) nested dict; missing keys keep defaults."""
+    cfg = _section_from_dict(MergeConfig, data, "")
+    validate(cfg)
+    return cfg
+
+
+# ----------------------------------------------------------------------------- TOML / JSON
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a JSON string is a valid TOML basic string
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {v!r} as TOML")
+
+
+def dumps_toml(cfg: MergeConfig, comments: bool = True) -> str:
+    """The config as TOML text (one table per section). Optional settings left at ``None``
+    (automatic) are written as comments so users see that they exist."""
+    lines = ["# octomerge configuration (octomerge dump-config). Load with --config FILE;",
+             "# command-line flags override these values. Omitted keys keep their defaults.", ""]
+    for f in dataclasses.fields(cfg):
+        section = getattr(cfg, f.name)
+        lines.append(f"[{f.name}]")
+        for g in dataclasses.fields(section):
+            v = getattr(section, g.name)
+            if v is None:
+                if comments:
+                    lines.append(f"# {g.name} = ...  (automatic)")
+                continue
+            lines.append(f"{g.name} = {_toml_value(list(v) if isinstance(v, tuple) else v)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def load_config(path) -> MergeConfig:
+    """Read a ``.toml`` or ``.json`` config file (partial files are fine). Raises
+    ``FileNotFoundError`` or ``ValueError`` naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: config file not found")
+    text = path.read_text()
+    try:
+        data = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'TOML'}: {err}") from None
+    try:
+        return config_from_dict(data)
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from None
+
+
+def save_config(cfg: MergeConfig, path) -> None:
+    """Write ``cfg`` as TOML (or JSON for a ``.json`` path), atomically."""
+    from ._fileutil import atomic_write_bytes
+
+    path = Path(path)
+    if path.suffix.lower() == ".json":
+        text = json.dumps(config_to_dict(cfg), indent=2) + "\n"
+    else:
+        text = dumps_toml(cfg)
+    atomic_write_bytes(path, text.encode())
