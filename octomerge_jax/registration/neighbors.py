@@ -1,0 +1,237 @@
+"""Jittable fixed-radius nearest neighbours on a hashed uniform grid.
+
+Points are binned into cubic cells of edge ``cell_size`` (the search radius); a query looks at
+the 27 cells around its own cell, which contain every point within ``cell_size`` of it. Cells
+go to buckets of a table of ``M`` (power of two) buckets x ``K = cell_capacity`` slots: by a
+linear index when the points' cell bounding box has at most ``M`` cells (collision-free), else
+by a spatial hash (Teschner et al. 2003 with a murmur3 finaliser, as in KISS-ICP's voxel map). Everything has static shape,
+so building and querying are plain sorts, scatters and gathers under ``jit``/``vmap``:
+
+- build: sort points by (bucket, pseudo-random rank) and scatter the first ``K`` of each bucket
+  into the table. Buckets with more than ``K`` points keep a pseudo-random subset (a spatially
+  uniform subsample); the dropped points are counted in ``overflow`` (a status, not an error).
+  Hash collisions only add candidates, never wrong answers: distances are always exact.
+- query: 27 gathers of ``K`` candidates per query point and an exact squared distance; the
+  result is exact (the true nearest neighbour within ``cell_size``) whenever ``overflow == 0``.
+  Candidates farther than ``cell_size`` may be returned; callers filter by distance.
+
+No SciPy/KD-tree: the same code runs for one query set or ``vmap``-ed over many transforms.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["HashGrid", "build_grid", "build_grids", "nearest", "any_within", "grid_table_size",
+           "level_table_sizes"]
+
+_FAR = 1.0e7  # coordinate of empty slots [m]: farther than anything real, finite squares
+_P1, _P2, _P3 = np.uint32(73856093), np.uint32(19349663), np.uint32(83492791)
+_OFFSETS = np.array([(i, j, k) for k in (-1, 0, 1) for j in (-1, 0, 1) for i in (-1, 0, 1)], np.int32)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class HashGrid:
+    """Hashed grids over one point set, one per level (cell size), flattened for gathers.
+
+    Level ``l`` has ``M_l`` buckets (a power of two) of ``K = cell_capacity`` slots, stored at
+    rows ``base[l] .. base[l] + M_l`` (row ``base[l] + M_l`` is an always-empty sink) of:
+
+    - ``xyz``: ``(3, R, K)`` float32 slot coordinates [m] (structure of arrays: one gather per
+      axis is ~3x faster on CPU than gathering ``(K, 3)`` blocks); empty slots hold ``1e7``.
+    - ``index``: ``(R, K)`` int32 row of each slot's point, ``-1`` if empty.
+    - ``base``: ``(L,)`` int32 first row of each level; ``mask``: ``(L,)`` int32 ``M_l - 1``.
+    - ``origin``, ``dims``: ``(L, 3)`` int32 cell bounding box of the points; ``dense``:
+      ``(L,)`` bool, the box has at most ``M_l`` cells, so cells are indexed linearly
+      (collision-free) instead of hashed.
+    - ``cell_size``: ``(L,)`` float32 cell edge of each level [m].
+    - ``overflow``: ``(L,)`` int32 valid points not stored because their bucket was full.
+    """
+
+    xyz: jax.Array
+    index: jax.Array
+    base: jax.Array
+    mask: jax.Array
+    origin: jax.Array
+    dims: jax.Array
+    dense: jax.Array
+    cell_size: jax.Array
+    overflow: jax.Array
+
+    @property
+    def num_levels(self) -> int:
+        return int(self.cell_size.shape[-1])
+
+    @property
+    def cell_capacity(self) -> int:
+        return int(self.index.shape[-1])
+
+
+def grid_table_size(capacity: int, factor: float = 2.0) -> int:
+    """Hash-table size for a point set of ``capacity`` rows: the power of two
+    ``>= factor * capacity`` (at least 256)."""
+    return 1 << max(8, int(np.ceil(np.log2(max(factor * int(capacity), 1.0)))))
+
+
+def level_table_sizes(capacity: int, cell_sizes) -> tuple[int, ...]:
+    """Host: static table sizes for the levels of ``cell_sizes`` (values known on the host).
+    The finest level gets ``4 x capacity`` buckets (few collisions, so no overflow on a
+    lattice of voxel centres with cell = 2 voxels); a level ``r`` times coarser needs about
+    ``r^2`` times fewer cells on surfaces, so it gets ``4 capacity / r^2`` (>= 256)."""
+    sizes = np.asarray(cell_sizes, np.float64).reshape(-1)
+    finest = float(np.min(sizes))
+    return tuple(grid_table_size(capacity, 4.0 / (float(c) / finest) ** 2) for c in sizes)
+
+
+def _cells(points, cell_size):
+    return jnp.floor(points / cell_size).astype(jnp.int32)
+
+
+def _hash(cells, mask):
+    """Spatial hash of integer cells (Teschner et al. 2003) with a murmur3 finaliser, so
+    that neighbouring cells spread over the table (fewer collisions than the plain XOR);
+    ``mask = table_size - 1`` (static or traced)."""
+    c = cells.astype(jnp.uint32)
+    h = (c[..., 0] * _P1) ^ (c[..., 1] * _P2) ^ (c[..., 2] * _P3)
+    h = h ^ (h >> 16)
+    h = h * np.uint32(0x85EBCA6B)
+    h = h ^ (h >> 13)
+    h = h * np.uint32(0xC2B2AE35)
+    h = h ^ (h >> 16)
+    return (h & jnp.asarray(mask).astype(jnp.uint32)).astype(jnp.int32)
+
+
+def _bucket(cells, mask, origin, dims, dense):
+    """Bucket of integer ``cells (..., 3)``: linear index inside the box when ``dense``
+    (cells outside the box go to the sink ``mask + 1``), else the hash."""
+    rel = cells - origin
+    inside = jnp.all((rel >= 0) & (rel < dims), axis=-1)
+    lin = rel[..., 0] + dims[0] * (rel[..., 1] + dims[1] * rel[..., 2])
+    return jnp.where(dense, jnp.where(inside, lin, mask + 1), _hash(cells, mask))
+
+
+def _build_level(points, count, cell_size, table_size: int, cell_capacity: int):
+    points = jnp.asarray(points, jnp.float32)
+    n = points.shape[0]
+    cell_size = jnp.asarray(cell_size, jnp.float32)
+    rows = jnp.arange(n, dtype=jnp.int32)
+    valid = (rows < count) & jnp.all(jnp.isfinite(points), axis=-1)
+    safe = jnp.where(valid[:, None], points, 0.0)
+    cells = _cells(safe, cell_size)
+    big = jnp.iinfo(jnp.int32).max
+    origin = jnp.min(jnp.where(valid[:, None], cells, big), axis=0)
+    top = jnp.max(jnp.where(valid[:, None], cells, -big), axis=0)
+    origin = jnp.where(jnp.any(valid), origin, 0)
+    dims = jnp.where(jnp.any(valid), top - origin + 1, 1)
+    dense = jnp.prod(dims.astype(jnp.float32)) <= table_size
+    mask = jnp.int32(table_size - 1)
+    bucket = jnp.where(valid, _bucket(cells, mask, origin, dims, dense), table_size)
+    # pseudo-random tie-break so that full buckets keep a spatially uniform subset
+    rnd = ((rows.astype(jnp.uint32) * np.uint32(2654435761)) >> 1).astype(jnp.int32)
+    sb, _, order = jax.lax.sort((bucket, rnd, rows), num_keys=2)
+    is_start = jnp.concatenate([jnp.ones((1,), bool), sb[1:] != sb[:-1]])
+    start = jax.lax.cummax(jnp.where(is_start, rows, 0), axis=0)
+    rank = rows - start
+    keep = (sb < table_size) & (rank < cell_capacity)
+    r = jnp.where(keep, sb, table_size)
+    k = jnp.where(keep, rank, 0)
+    xyz = jnp.full((3, table_size + 1, cell_capacity), _FAR, jnp.float32)
+    xyz = xyz.at[:, r, k].set(safe[order].T).at[:, table_size].set(_FAR)
+    index = jnp.full((table_size + 1, cell_capacity), -1, jnp.int32)
+    index = index.at[r, k].set(order).at[table_size].set(-1)
+    overflow = jnp.sum((sb < table_size) & (rank >= cell_capacity)).astype(jnp.int32)
+    return xyz, index, overflow, origin, dims, dense
+
+
+def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 8) -> HashGrid:
+    """Bin ``points (n, 3)`` [m] (rows ``>= count`` are padding; non-finite rows are ignored)
+    into one hashed grid per entry of ``cell_sizes (L,)`` [m] (traced). ``table_sizes``
+    (static tuple of powers of two, one per level, e.g. ``level_table_sizes``) and
+    ``cell_capacity`` are static. Jittable and vmappable."""
+    table_sizes = tuple(int(t) for t in np.atleast_1d(table_sizes))
+    for t in table_sizes:
+        if t < 1 or t & (t - 1):
+            raise ValueError(f"table sizes must be powers of two, got {table_sizes}")
+    sizes = jnp.atleast_1d(jnp.asarray(cell_sizes, jnp.float32))
+    if sizes.shape[0] != len(table_sizes):
+        raise ValueError(f"{sizes.shape[0]} cell sizes but {len(table_sizes)} table sizes")
+    xyzs, idxs, ovs, bases, boxes = [], [], [], [], []
+    base = 0
+    for l, t in enumerate(table_sizes):
+        xyz, index, ov, origin, dims, dense = _build_level(points, count, sizes[l], t, cell_capacity)
+        xyzs.append(xyz), idxs.append(index), ovs.append(ov), bases.append(base)
+        boxes.append((origin, dims, dense))
+        base += t + 1
+    return HashGrid(
+        xyz=jnp.concatenate(xyzs, axis=1),
+        index=jnp.concatenate(idxs, axis=0),
+        base=jnp.asarray(bases, jnp.int32),
+        mask=jnp.asarray([t - 1 for t in table_sizes], jnp.int32),
+        origin=jnp.stack([b[0] for b in boxes]),
+        dims=jnp.stack([b[1] for b in boxes]),
+        dense=jnp.stack([b[2] for b in boxes]),
+        cell_size=sizes,
+        overflow=jnp.stack(ovs),
+    )
+
+
+def build_grid(points, count, cell_size, *, table_size: int, cell_capacity: int = 8) -> HashGrid:
+    """A single-level ``HashGrid`` with cells of edge ``cell_size`` [m]."""
+    return build_grids(points, count, jnp.reshape(jnp.asarray(cell_size, jnp.float32), (1,)),
+                       table_sizes=(table_size,), cell_capacity=cell_capacity)
+
+
+_CHUNK = 2048
+
+
+def _nearest_block(xyz, index, base, mask, origin, dims, dense, h, q):
+    finite = jnp.all(jnp.isfinite(q), axis=-1)
+    q = jnp.where(finite[..., None], q, _FAR)
+    c = _cells(q, h)
+    rows = base + _bucket(c[:, None, :] + jnp.asarray(_OFFSETS)[None], mask, origin, dims, dense)  # (b, 27)
+    d2 = 0.0
+    for a in range(3):
+        pa = xyz[a].at[rows].get(mode="promise_in_bounds")  # (b, 27, K)
+        d2 = d2 + (pa - q[:, None, None, a]) ** 2
+    b, k = q.shape[0], xyz.shape[-1]
+    d2 = d2.reshape(b, 27 * k)
+    j = jnp.argmin(d2, axis=-1)
+    best = jnp.take_along_axis(d2, j[:, None], axis=-1)[:, 0]
+    row = jnp.take_along_axis(rows, (j // k)[:, None], axis=-1)[:, 0]
+    idx = index[row, j % k]
+    found = (idx >= 0) & finite
+    return jnp.where(found, best, jnp.inf), jnp.where(found, idx, -1)
+
+
+def nearest(grid: HashGrid, queries, level=0):
+    """Nearest grid point to each query ``(n, 3)`` [m] among the 27 cells around it.
+
+    ``level`` selects the grid level (traced int). Returns ``(dist2 (n,) float32 [m^2],
+    index (n,) int32)``; ``index == -1`` and ``dist2 = inf`` when the 27 cells are empty.
+    Exact for every point within ``cell_size`` of the query when ``overflow[level] == 0``.
+    Queries are processed in blocks of 2048 to bound memory.
+    """
+    level = jnp.asarray(level, jnp.int32)
+    base, mask, h = grid.base[level], grid.mask[level], grid.cell_size[level]
+    origin, dims, dense = grid.origin[level], grid.dims[level], grid.dense[level]
+    q = jnp.asarray(queries, jnp.float32)
+    n = q.shape[0]
+    f = lambda qb: _nearest_block(grid.xyz, grid.index, base, mask, origin, dims, dense, h, qb)
+    if n <= _CHUNK or n % _CHUNK:
+        return f(q)
+    d2, idx = jax.lax.map(f, q.reshape(n // _CHUNK, _CHUNK, 3))
+    return d2.reshape(n), idx.reshape(n)
+
+
+def any_within(grid: HashGrid, queries, radius, level=0):
+    """``(n,)`` bool: some grid point lies within ``radius`` [m] of each query
+    (exact for ``radius <= cell_size[level]`` when nothing overflowed)."""
+    d2, index = nearest(grid, queries, level)
+    r = jnp.asarray(radius, jnp.float32)
+    return (index >= 0) & (d2 <= r * r)
