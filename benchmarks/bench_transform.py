@@ -185,19 +185,23 @@ def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
     out = resample.transform_map(m, T, method=method)
     jax.block_until_ready(out.code)
     first = time.perf_counter() - t0
-    totals, plans, kernels, prunes = [], [], [], []
+    totals, plans, kernels, prunes, cpus = [], [], [], [], []
     for _ in range(repeats):
+        c0 = time.process_time()
         t0 = time.perf_counter()
         plan = resample._plan(m, resample.check_rigid_transform(T), method, "probability", 64, None)
         jax.block_until_ready(plan.args)
         t1 = time.perf_counter()
+        c1 = time.process_time()
         raw, total, _ = resample._transform_kernel(*plan.args, chunk=plan.chunk,
                                                 out_capacity=plan.out_capacity)
         jax.block_until_ready(raw.code)
         t2 = time.perf_counter()
+        c2 = time.process_time()
         out = resample._run(plan)  # kernel again + prune (the public path)
         jax.block_until_ready(out.code)
         t3 = time.perf_counter()
+        cpus.append((c1 - c0) + (time.process_time() - c2))  # plan + _run, all threads
         plans.append(t1 - t0)
         kernels.append(t2 - t1)
         prunes.append(max(0.0, (t3 - t2) - (t2 - t1)))
@@ -211,7 +215,7 @@ def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
     return dict(tiles=tiles, src_leaves=n_src, out_leaves=n_out, dest_bricks=plan.n_dest_bricks,
                 dense_bricks=plan.n_dense_bricks, dest_voxels=vox_known,
                 scanned_voxels=plan.n_dest_bricks * 512, first_s=first,
-                median_s=statistics.median(totals), plan_s=statistics.median(plans),
+                median_s=statistics.median(totals), cpu_s=statistics.median(cpus), plan_s=statistics.median(plans),
                 kernel_s=statistics.median(kernels), prune_s=statistics.median(prunes),
                 rss_before_mb=rss_before, peak_rss_mb=_rss_mb(), src_mb=src_bytes / 2**20,
                 dense_mb=dense_bytes / 2**20, out_mb=out_bytes / 2**20)
@@ -276,8 +280,9 @@ def main() -> None:
           f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPUs, "
           f"res {RES} m")
     hdr = (f"{'tiles':>5} {'src leaves':>10} {'out leaves':>10} {'dest vox':>11} "
-           f"{'first s':>8} {'median s':>8} {'plan':>6} {'kernel':>6} {'prune':>6} "
-           f"{'Mvox/s':>7} {'peak MB':>8} {'src/dense/out MB':>17} {'peer s':>7} {'x peer':>7}")
+           f"{'first s':>8} {'median s':>8} {'cpu s':>6} {'plan':>6} {'kernel':>6} {'prune':>6} "
+           f"{'Mvox/s':>7} {'peak MB':>8} {'src/dense/out MB':>17} {'peer s':>7} {'peer cpu':>8} "
+           f"{'x wall':>7} {'x cpu':>6}")
     print(hdr)
     for tiles in [int(s) for s in a.sizes.split(",")]:
         dump = str(HERE / "_build" / f"map_{tiles}.bin") if exe else None
@@ -288,22 +293,26 @@ def main() -> None:
             print(r.stderr[-3000:], file=sys.stderr)
             continue
         s = json.loads(r.stdout.strip().splitlines()[-1])
-        peer, label = None, ""
+        peer, peer_cpu, label = None, None, ""
         if exe and dump:
             c = run_cpp(exe, dump)
             if c:
-                peer = c["seconds"]
+                peer, peer_cpu = c["seconds"], c["cpu_seconds"]
                 label = "C++"
         if peer is None and tiles in ANCHOR_S:
             peer, label = ANCHOR_S[tiles], "anch"
         ratio = f"{peer / s['median_s']:6.1f}x" if peer else "     -"
+        ratio_cpu = f"{peer_cpu / s['cpu_s']:5.1f}x" if peer_cpu else "     -"
         mb = f"{s['src_mb']:.0f}/{s['dense_mb']:.0f}/{s['out_mb']:.0f}"
         print(f"{tiles:>3}x{tiles:<1} {s['src_leaves']:>10,} {s['out_leaves']:>10,} "
-              f"{s['dest_voxels']:>11,} {s['first_s']:>8.2f} {s['median_s']:>8.3f} "
+              f"{s['dest_voxels']:>11,} {s['first_s']:>8.2f} {s['median_s']:>8.3f} {s['cpu_s']:>6.2f} "
               f"{s['plan_s']:>6.2f} {s['kernel_s']:>6.2f} {s['prune_s']:>6.2f} "
               f"{s['dest_voxels'] / s['median_s'] / 1e6:>7.1f} {s['peak_rss_mb']:>8.0f} "
-              f"{mb:>17} {(f'{peer:.2f}' if peer else '-'):>6}{label[:1]} {ratio:>7}")
+              f"{mb:>17} {(f'{peer:.2f}' if peer else '-'):>6}{label[:1]} "
+              f"{(f'{peer_cpu:.2f}' if peer_cpu else '-'):>8} {ratio:>7} {ratio_cpu:>6}")
         sys.stdout.flush()
+    print("# cpu s: process CPU time of a steady run summed over threads (robust on a shared,"
+          " loaded machine); x wall / x cpu: peer time / ours.")
     print("# dest vox: known destination voxels at depth 16 (after expansion of the output);"
           " Mvox/s = dest vox / median.")
     print("# peak MB: process peak RSS (includes the map generator); src/dense/out MB: source "
