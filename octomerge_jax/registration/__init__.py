@@ -1,0 +1,23 @@
+"""Registration of two occupancy maps (thesis §5.2.1, §6.1-6.3): occupied-voxel clouds,
+overlap extraction, jitted/differentiable point-to-point ICP, rendezvous initial estimates,
+error metrics and rigid-transform helpers."""
+
+from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
+                  pad_points, stage_distances)
+from .metrics import rotation_angle_error, rotation_error, translation_distance, translation_error
+from .neighbors import HashGrid, any_within, build_grid, build_grids, nearest
+from .overlap import Overlap, overlap
+from .points import occupied_points
+from .rendezvous import (lift_2d, relative_pose_2d, relative_pose_3d, rendezvous_transform,
+                         rendezvous_transform_2d)
+from .rigid import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quaternion, to_xyz_rpy, transform_points
+
+__all__ = [
+    "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded",
+    "pad_points", "stage_distances", "rotation_angle_error", "rotation_error",
+    "translation_distance", "translation_error", "HashGrid", "any_within", "build_grid",
+    "build_grids", "nearest", "Overlap", "overlap", "occupied_points", "lift_2d",
+    "relative_pose_2d", "relative_pose_3d", "rendezvous_transform", "rendezvous_transform_2d",
+    "check_rigid", "from_quaternion", "from_xyz_rpy", "inverse", "to_quaternion", "to_xyz_rpy",
+    "transform_points",
+]
