@@ -576,6 +576,44 @@ def test_reader_matches_brute_force_recursive_parser():
         np.testing.assert_array_equal(got.log_odds, np.array([r[2] for r in ref], np.float32))
 
 
+def test_fused_bt_writer_matches_prune_then_encode():
+    """The one-pass .bt writer equals max_likelihood_prune + the plain record encoder."""
+    rng = np.random.default_rng(8)
+    for trial in range(40):
+        n = int(rng.integers(1, 500))
+        span = int(rng.choice([2, 4, 8, 32]))
+        keys = rng.integers(0, span, size=(n, 3)) + int(rng.integers(0, 1 << 15))
+        if trial % 4 == 3:  # dense aligned cubes, one raw value per 2^3 block: depth-15
+            # leaves that differ raw (0 vs 2) but agree after maximum likelihood
+            side = int(rng.choice([4, 8]))
+            keys = _block(rng.integers(0, 1 << 10, size=3) * 8, side)
+            lo = rng.choice(np.array([0.0, 2.0], np.float32), size=(side // 2,) * 3)[
+                keys[:, 0] % side // 2, keys[:, 1] % side // 2, keys[:, 2] % side // 2]
+        else:
+            lo = rng.choice(np.array([-1.0, 0.0, 2.0], np.float32), size=keys.shape[0])
+        codes, first = np.unique(morton.keys_to_codes(keys.astype(np.uint16)), return_index=True)
+        m = tree_prune_host(codes, lo[first])
+        lv = m.leaves()
+        if trial % 2 and np.any(lv.depths < 16):  # only coarse leaves: empty finest levels
+            keep = lv.depths < 16
+            m = from_leaves(lv.codes[keep], lv.depths[keep], lv.log_odds[keep], 0.1)
+            lv = m.leaves()
+        c, d, v = max_likelihood_prune(lv.codes, lv.depths, lv.log_odds)
+        body, nodes = _preorder.encode_bt(c, d.astype(np.uint8), v >= 0)
+        assert to_bytes(m, binary=True) == body.tobytes()
+        assert read_header_size(to_bytes(m, binary=True, header=True)) == nodes
+
+
+def tree_prune_host(codes, log_odds):
+    import octomerge_jax.tree as tree_mod
+
+    return tree_mod.prune(from_leaves(codes, np.full(codes.size, 16), log_odds, 0.1))
+
+
+def read_header_size(image: bytes) -> int:
+    return int(image.split(b"\nsize ")[1].split(b"\n")[0])
+
+
 def _recursive_ot(data: bytes):
     out, pos = [], 0
 

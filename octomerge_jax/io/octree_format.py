@@ -459,11 +459,10 @@ def _encode(occupancy_map, binary: bool) -> tuple[bytes, int]:
     codes, depths, log_odds = _host_leaves(occupancy_map)
     if binary:
         p = _params_f32(occupancy_map.params)
-        codes, depths, values = max_likelihood_prune(codes, depths, log_odds,
-                                                     occupancy_map.params)
-        codes, depths, values = _expand_root(codes, depths, values)
-        body, nodes = _preorder.encode_bt(codes, depths,
-                                          values >= p["occupancy_threshold_log_odds"])
+        codes, depths, log_odds = _expand_root(codes, depths, log_odds)
+        body, nodes = _preorder.encode_bt_pruned(
+            codes, depths, log_odds, p["occupancy_threshold_log_odds"],
+            p["clamp_min_log_odds"], p["clamp_max_log_odds"])
     else:
         codes, depths, log_odds = _expand_root(codes, depths, log_odds)
         body, nodes = _preorder.encode_ot(codes, depths, log_odds)
