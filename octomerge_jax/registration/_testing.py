@@ -50,12 +50,14 @@ def voxel_centres(points: np.ndarray, resolution: float) -> np.ndarray:
     return (k + 0.5) * resolution
 
 
-def scene_pair(resolution: float = 0.2, T_world_2=None, crop_1=(-1.0, 8.0), crop_2=(3.5, 13.0)):
+def scene_pair(resolution: float = 0.2, T_world_2=None, crop_1=(-1.0, 8.0), crop_2=(3.5, 13.0),
+               z_max: float = 3.5):
     """Occupied-voxel clouds of two robots' maps of one room.
 
     Map 1 is in the world frame and sees ``crop_1`` of world x; map 2 sees ``crop_2`` and is
     built in frame 2 with ``T_world_2`` (default: yaw pi/4 about the room centre plus an
-    offset, like the thesis's pi/4-rotated second map). Returns ``(points_1, points_2,
+    offset, like the thesis's pi/4-rotated second map). Points above world ``z_max`` are
+    not seen (a low sensor). Returns ``(points_1, points_2,
     T_1_2)`` with ``points_1 (n1, 3)``, ``points_2 (n2, 3)`` float64 [m] and the true
     ``T_1_2 (4, 4)`` float64 (= ``T_world_2``).
     """
@@ -63,6 +65,7 @@ def scene_pair(resolution: float = 0.2, T_world_2=None, crop_1=(-1.0, 8.0), crop
         T_world_2 = _exact(0.0, 0.0, np.pi / 4, (1.0, -0.5, 0.0))
     T_world_2 = np.asarray(T_world_2, np.float64)
     dense = surface_samples(resolution / 3.0)
+    dense = dense[dense[:, 2] <= z_max]
     in1 = (dense[:, 0] >= crop_1[0]) & (dense[:, 0] <= crop_1[1])
     in2 = (dense[:, 0] >= crop_2[0]) & (dense[:, 0] <= crop_2[1])
     p1 = voxel_centres(dense[in1], resolution)

@@ -14,8 +14,8 @@ gives the subsets.
 
 from __future__ import annotations
 
-import dataclasses
 from functools import partial
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -26,11 +26,10 @@ from . import neighbors, rigid
 __all__ = ["Overlap", "overlap"]
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Overlap:
+class Overlap(NamedTuple):
     """``mask_1 (n1,)``, ``mask_2 (n2,)`` bool: selected rows of each cloud;
-    ``count_1``, ``count_2``: ``()`` int32 numbers selected."""
+    ``count_1``, ``count_2``: ``()`` int32 numbers selected (a NamedTuple, so a pytree and
+    ``mask_1, mask_2, *_ = overlap(...)`` works)."""
 
     mask_1: jax.Array
     mask_2: jax.Array

@@ -1,0 +1,544 @@
+"""Dense (map-to-map) alignment and gradient-based transform tuning.
+
+ICP (Alg. 3) aligns the *occupied* voxel centres of two maps. Here the whole map takes part:
+map 1 is read by trilinear ``sample`` (eqs. 3.6-3.13) at the known voxel centres of map 2 moved
+by ``T_1_2``, and the agreement of the two occupancies is a differentiable function of the six
+pose parameters, so the transform can be refined by a quasi-Newton solver or tuned by gradient
+through any downstream loss.
+
+**Score.** Each map holds a *signed occupancy* ``s = 2 p - 1 = tanh(l / 2)`` in known voxels
+(+1 occupied, -1 free) and ``0`` in unknown space. ``s_1`` is interpolated at ``y_j = T_1_2 x_j``
+over the 8 voxel centres around ``y_j`` with unknown neighbours counted as ``0`` -- i.e.
+``s_1(y) = 2 A(y) - C(y)`` with ``A = sample(m1, y, method="thesis")`` (unknown neighbours weigh
+as p = 0) and ``C`` the same sample of the all-occupied copy of map 1 (the known coverage of
+the 8 weights). Unlike the renormalised ``"trilinear"`` mode, whose set of known neighbours
+jumps, this field is continuous everywhere and piecewise smooth, so gradients are well
+behaved; unknown space in either map is neutral. The loss is::
+
+    L(T_1_2) = - sum_j w_j s_2(x_j) s_1(T_1_2 x_j) / sum_j w_j            in [-1, 1]
+
+over sample points ``x_j`` of map 2 (its known voxel centres, or a seeded subset), with the
+occupied and free classes weighted to ``1 : free_weight`` in total (free space outnumbers
+surfaces by an order of magnitude). Agreement (occupied on occupied, free on free) lowers it;
+an occupied voxel moved into the other map's free space raises it.
+
+**Coarse to fine.** Trilinear interpolation only "sees" one voxel around each point, so the
+basin of the finest level is about one voxel. ``prepare_alignment`` therefore builds, for each
+level ``k`` of ``levels`` (default ``(3, 2, 1, 0)``), copies of both maps coarsened by ``2^k``
+(each coarse cell takes the maximum log-odds of its known children, OctoMap's inner-node rule)
+and *relabelled as depth-16 maps of resolution* ``res * 2^k``, so ``sample`` interpolates at
+the coarse scale; ``align_dense`` solves from coarse to fine.
+
+**Solver.** The unknown is a 6-vector ``z`` = a right increment on se(3) about the centroid
+``c`` of map 2's sample points, ``T(z) = T_start C exp([z_t, z_r / rho]) C^-1`` with
+``C = [I | c]`` and ``rho`` the RMS radius of the points, so translation (m) and rotation
+(rad x rho, the arc length in m) are commensurate. ``z`` is minimised with L-BFGS
+(``_solver.minimize``, jaxopt behind a small interface) per level under ``jit``; ``vmap`` runs
+many initial guesses (or many stacked problems) at once.
+
+**Status** (``AlignResult.status``): 0 converged; 1 the finest level hit ``maxiter``; 2 poor
+agreement -- fewer than ``min_agreement`` of map 2's occupied sample points that land in
+map 1's known space land on map 1's occupied space (a wrong local minimum, e.g. from a
+hopeless start); 3 too little overlap (fewer than ``min_overlap`` of map 2's occupied points
+land in map 1's known space); 4 non-finite loss. Only status 0 sets ``converged``.
+
+**Tuning API.** ``transformed_occupancy`` is ``transform_map``'s per-voxel value (eq. 5.13)
+with a traced transform (``transform_map`` plans its output on the host, so it cannot be
+traced in ``T``); ``fused_log_odds`` is the fusion rule of Alg. 8 evaluated at points; both
+are differentiable w.r.t. the transform, as is ``problem_loss``. Gradients through ``icp`` come
+from the implicit derivative of its fixed point (``icp.py``).
+
+The se(3) exponential used here (``_se3_exp``) is private to this module: ``rigid.py`` has no
+Lie-algebra helpers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import morton
+from ..map import OccupancyMap, bucket_capacity, from_leaves
+from ..resample import check_rigid_transform, sample
+from . import _solver, rigid
+
+__all__ = [
+    "STATUS_CONVERGED",
+    "STATUS_MAX_ITERATIONS",
+    "STATUS_POOR_AGREEMENT",
+    "STATUS_LOW_OVERLAP",
+    "STATUS_NOT_FINITE",
+    "AlignLevel",
+    "AlignProblem",
+    "AlignResult",
+    "coarsen",
+    "prepare_alignment",
+    "stack_problems",
+    "problem_loss",
+    "alignment_loss",
+    "solve_alignment",
+    "align_dense",
+    "best_result",
+    "transformed_occupancy",
+    "fused_log_odds",
+    "pose_from_increment",
+]
+
+STATUS_CONVERGED = 0
+STATUS_MAX_ITERATIONS = 1
+STATUS_POOR_AGREEMENT = 2
+STATUS_LOW_OVERLAP = 3
+STATUS_NOT_FINITE = 4
+
+_D = morton.TREE_DEPTH
+_KNOWN_LOG_ODDS = 30.0  # sigmoid(30) == 1 in float32: the "all occupied" copy for coverage
+
+
+# ----------------------------------------------------------------------------- se(3)
+
+
+def _skew(w):
+    z = jnp.zeros_like(w[..., 0])
+    return jnp.stack([jnp.stack([z, -w[..., 2], w[..., 1]], -1),
+                      jnp.stack([w[..., 2], z, -w[..., 0]], -1),
+                      jnp.stack([-w[..., 1], w[..., 0], z], -1)], -2)
+
+
+def _se3_exp(xi):
+    """se(3) exponential: ``xi (..., 6)`` = (v [m], omega [rad]) -> ``T (..., 4, 4)``.
+
+    Taylor series below ``theta = 0.1`` rad (exact to float32 there and NaN-free gradients at
+    zero), closed form (Rodrigues) above.
+    """
+    v, w = xi[..., :3], xi[..., 3:]
+    t2 = jnp.sum(w * w, axis=-1)
+    small = t2 < 1e-2
+    t2s = jnp.where(small, jnp.ones_like(t2), t2)
+    t = jnp.sqrt(t2s)
+    a = jnp.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, jnp.sin(t) / t)
+    b = jnp.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - jnp.cos(t)) / t2s)
+    c = jnp.where(small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0, (t - jnp.sin(t)) / (t2s * t))
+    K = _skew(w)
+    K2 = K @ K
+    eye = jnp.eye(3, dtype=xi.dtype)
+    R = eye + a[..., None, None] * K + b[..., None, None] * K2
+    V = eye + b[..., None, None] * K + c[..., None, None] * K2
+    return rigid.from_rotation_translation(R, (V @ v[..., None])[..., 0])
+
+
+def pose_from_increment(T_start, z, center, radius):
+    """``T_start (4, 4) @ C exp([z[:3], z[3:] / radius]) C^-1`` with ``C = [I | center]``.
+
+    ``z (6,)``: translation [m] and rotation scaled to arc length at ``radius`` [m] (so both
+    halves are in metres), applied in the frame of ``T_start``'s source about ``center (3,)``.
+    """
+    xi = jnp.concatenate([z[:3], z[3:] / radius])
+    E = _se3_exp(xi)
+    R, t = E[:3, :3], E[:3, 3]
+    t = t + center - R @ center
+    return T_start @ rigid.from_rotation_translation(R, t)
+
+
+# ----------------------------------------------------------------------------- pytrees
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class AlignLevel:
+    """One scale of an ``AlignProblem``.
+
+    - ``map1``: map 1 coarsened by ``2^k`` and relabelled at resolution ``res * 2^k`` (depth
+      16 = one coarse cell), static resolution.
+    - ``points2``: ``(P, 3)`` float32 [m], sample points of map 2 (coarse-cell centres) in map
+      2's frame; padding rows are zeros.
+    - ``signed2``: ``(P,)`` float32, map 2's signed occupancy ``tanh(l / 2)`` at each point.
+    - ``weight2``: ``(P,)`` float32, non-negative weights summing to 1 (0 on padding).
+    - ``occupied2``: ``(P,)`` bool, the point is occupied in map 2 (for the status checks).
+    """
+
+    map1: OccupancyMap
+    points2: jax.Array
+    signed2: jax.Array
+    weight2: jax.Array
+    occupied2: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class AlignProblem:
+    """Host-prepared input of ``solve_alignment`` (a pytree; stack several with
+    ``stack_problems`` to ``vmap`` over pairs).
+
+    - ``levels``: tuple of ``AlignLevel``, coarse to fine (the last is the finest).
+    - ``center2``: ``(3,)`` float32 [m], centroid of map 2's finest sample points (frame 2),
+      the pivot of the rotation increment.
+    - ``radius``: ``()`` float32 [m], their RMS distance to ``center2`` (rotation scale).
+    """
+
+    levels: tuple
+    center2: jax.Array
+    radius: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class AlignResult:
+    """Result of ``align_dense`` / ``solve_alignment`` (arrays; batched under ``vmap``).
+
+    - ``T_1_2``: ``(4, 4)`` float32, maps points of map 2's frame into map 1's.
+    - ``loss``: ``()`` float32, ``problem_loss`` at the finest level (in [-1, 1], lower is better).
+    - ``loss_history``: ``(L, maxiter + 1)`` float32, the loss per level (coarse to fine) at
+      the start and after every iteration; NaN after a level stopped.
+    - ``iterations``: ``(L,)`` int32 solver iterations per level; ``num_iterations`` ``()`` total.
+    - ``overlap``: ``()`` float32, share of map 2's occupied sample weight landing in map 1's
+      known space (finest level).
+    - ``agreement``: ``()`` float32, of that, the share landing where map 1 is occupied.
+    - ``grad_norm``: ``()`` float32, gradient norm at the end of the finest level.
+    - ``status``: ``()`` int32 (module docstring); ``converged``: ``()`` bool, ``status == 0``.
+    """
+
+    T_1_2: jax.Array
+    loss: jax.Array
+    loss_history: jax.Array
+    iterations: jax.Array
+    num_iterations: jax.Array
+    overlap: jax.Array
+    agreement: jax.Array
+    grad_norm: jax.Array
+    status: jax.Array
+    converged: jax.Array
+
+
+# ----------------------------------------------------------------------------- host planning
+
+
+def coarsen(m: OccupancyMap, k: int, capacity: int | None = None) -> OccupancyMap:
+    """Map ``m`` coarsened by ``2^k`` per axis and relabelled as a map of resolution
+    ``res * 2^k``: a leaf finer than ``2^k`` voxels goes to the coarse cell containing it
+    (cells take the maximum log-odds of their known children, OctoMap's inner-node rule); a
+    coarser leaf keeps its extent (depth ``d -> d + k``). Centres keep their metric positions
+    (cell ``i`` of the coarse map covers exactly ``2^k`` voxels ``i * 2^k ...``). Host function.
+    """
+    k = int(k)
+    if not 0 <= k < _D:
+        raise ValueError(f"k (coarsening level) must lie in 0..15, got {k}")
+    if k == 0:
+        return m if capacity is None else m.with_capacity(capacity)
+    lv = m.leaves()
+    if lv.depths.size and lv.depths.min() < 1:
+        raise ValueError("coarsen: a depth-0 (root) leaf cannot be relabelled; expand it first")
+    keys = lv.keys.astype(np.int64) - morton.KEY_OFFSET
+    new_keys = (keys >> k) + morton.KEY_OFFSET  # floor division: exact for coarse leaves
+    new_depth = np.minimum(lv.depths + k, _D)
+    codes = morton.keys_to_codes(new_keys.astype(np.uint64))
+    span = np.uint64(1) << (np.uint64(3) * (_D - new_depth).astype(np.uint64))
+    codes = codes & ~(span - np.uint64(1))
+    order = np.lexsort((new_depth, codes))
+    codes, new_depth, lo = codes[order], new_depth[order], lv.log_odds[order]
+    first = np.ones(codes.shape, bool)
+    first[1:] = codes[1:] != codes[:-1]
+    seg = np.cumsum(first) - 1
+    n = int(first.sum())
+    val = np.full(n, -np.inf, np.float32)
+    np.maximum.at(val, seg, lo)
+    return from_leaves(codes[first], new_depth[first], val, m.resolution * 2.0 ** k, m.params,
+                       capacity=capacity)
+
+
+def _cell_samples(m: OccupancyMap, mask: np.ndarray, budget: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """Centres ``(n, 3)`` [m] and log-odds of the depth-16 cells of the leaves selected by
+    ``mask``: all of them if they fit in ``budget``, else ``budget`` cells drawn uniformly
+    (by volume) without replacement."""
+    lv = m.leaves()
+    codes, depths, lo = lv.codes[mask], lv.depths[mask], lv.log_odds[mask]
+    if codes.size == 0 or budget <= 0:
+        return np.zeros((0, 3)), np.zeros(0, np.float32)
+    cells = (np.uint64(1) << (np.uint64(3) * (_D - depths).astype(np.uint64))).astype(np.int64)
+    total = int(cells.sum())
+    if total <= budget:
+        idx = np.arange(total, dtype=np.int64)
+    else:
+        idx = np.sort(rng.choice(total, size=budget, replace=False))
+    starts = np.cumsum(cells) - cells
+    leaf = np.searchsorted(starts, idx, side="right") - 1
+    cell_codes = codes[leaf] + (idx - starts[leaf]).astype(np.uint64)
+    keys = morton.codes_to_keys(cell_codes)
+    return morton.keys_to_coords(keys, m.resolution), lo[leaf]
+
+
+def _level(m1: OccupancyMap, m2: OccupancyMap, k: int, max_points: int, free_weight: float,
+           rng, map_capacity: int | None, point_capacity: int | None) -> AlignLevel:
+    c1 = coarsen(m1, k, map_capacity)
+    c2 = coarsen(m2, k)
+    lv2 = c2.leaves()
+    thr = float(np.asarray(m2.params.occupancy_threshold_log_odds))
+    occ = lv2.log_odds >= thr
+    p_occ, l_occ = _cell_samples(c2, occ, max_points // 2, rng)
+    p_free, l_free = _cell_samples(c2, ~occ, max_points - p_occ.shape[0], rng)
+    n_occ, n_free = p_occ.shape[0], p_free.shape[0]
+    pts = np.concatenate([p_occ, p_free])
+    lo = np.concatenate([l_occ, l_free]).astype(np.float64)
+    w = np.concatenate([np.full(n_occ, 1.0 / max(n_occ, 1)),
+                        np.full(n_free, float(free_weight) / max(n_free, 1))])
+    w = w / max(w.sum(), 1e-30)
+    n = pts.shape[0]
+    cap = bucket_capacity(n) if point_capacity is None else int(point_capacity)
+    if cap < n:
+        raise ValueError(f"point_capacity {cap} is smaller than the {n} sample points")
+
+    def pad(a, fill=0.0, dtype=np.float32):
+        out = np.full((cap,) + a.shape[1:], fill, dtype)
+        out[:n] = a
+        return jnp.asarray(out)
+
+    return AlignLevel(map1=c1, points2=pad(pts), signed2=pad(np.tanh(lo / 2.0)), weight2=pad(w),
+                      occupied2=pad(np.arange(n) < n_occ, False, bool))
+
+
+def prepare_alignment(m1: OccupancyMap, m2: OccupancyMap, *, levels=(3, 2, 1, 0),
+                      max_points: int = 8192, free_weight: float = 0.5, seed: int = 0,
+                      map_capacities=None, point_capacities=None) -> AlignProblem:
+    """Host planning for ``solve_alignment`` / ``problem_loss``.
+
+    Args:
+      m1, m2: the maps (same resolution); map 1 is sampled, map 2 provides the points.
+      levels: coarsening exponents, coarse to fine (``k`` -> cells of ``res * 2^k``); use
+        ``(0,)`` for the finest level only.
+      max_points: sample points of map 2 per level (about half occupied cells, the rest free
+        cells drawn by volume with ``seed``); all known cells when they fit.
+      free_weight: total weight of the free points relative to the occupied ones.
+      map_capacities, point_capacities: optional per-level static capacities (to share one
+        compilation, or to stack problems of several pairs).
+
+    Raises ``ValueError`` (naming the argument) on mismatched resolutions, empty maps or bad
+    options.
+    """
+    if m1.resolution != m2.resolution:
+        raise ValueError(f"m1 and m2 must share a resolution, got {m1.resolution} and {m2.resolution}")
+    if m1.num_leaves == 0 or m2.num_leaves == 0:
+        raise ValueError("m1 and m2 must both hold leaves")
+    levels = tuple(int(k) for k in levels)
+    if not levels or any(not 0 <= k < _D for k in levels):
+        raise ValueError(f"levels must be a non-empty sequence of ints in 0..15, got {levels}")
+    if int(max_points) < 8:
+        raise ValueError(f"max_points must be at least 8, got {max_points}")
+    if not (np.isfinite(free_weight) and free_weight >= 0):
+        raise ValueError(f"free_weight must be a non-negative number, got {free_weight!r}")
+    mc = [None] * len(levels) if map_capacities is None else list(map_capacities)
+    pc = [None] * len(levels) if point_capacities is None else list(point_capacities)
+    if len(mc) != len(levels) or len(pc) != len(levels):
+        raise ValueError("map_capacities and point_capacities need one entry per level")
+    rng = np.random.default_rng(seed)
+    lvls = tuple(_level(m1, m2, k, int(max_points), float(free_weight), rng, a, b)
+                 for k, a, b in zip(levels, mc, pc))
+    fine = lvls[-1]
+    pts = np.asarray(fine.points2)
+    w = np.asarray(fine.weight2, np.float64)
+    valid = w > 0
+    center = pts[valid].mean(axis=0) if valid.any() else np.zeros(3)
+    radius = np.sqrt(np.mean(np.sum((pts[valid] - center) ** 2, axis=1))) if valid.any() else 1.0
+    radius = max(float(radius), 10.0 * m2.resolution)
+    return AlignProblem(levels=lvls, center2=jnp.asarray(center, jnp.float32),
+                        radius=jnp.asarray(radius, jnp.float32))
+
+
+def stack_problems(problems) -> AlignProblem:
+    """Stack problems of several pairs (same levels and resolution) along a new leading axis,
+    padding each level to the largest capacity, for ``jax.vmap(solve_alignment_fn)``."""
+    problems = list(problems)
+    if not problems:
+        raise ValueError("problems must not be empty")
+    n_lv = len(problems[0].levels)
+    if any(len(p.levels) != n_lv for p in problems):
+        raise ValueError("problems must have the same number of levels")
+    levels = []
+    for i in range(n_lv):
+        lv = [p.levels[i] for p in problems]
+        if len({l.map1.resolution for l in lv}) != 1:
+            raise ValueError(f"level {i}: problems have different resolutions")
+        mcap = max(l.map1.capacity for l in lv)
+        pcap = max(l.points2.shape[0] for l in lv)
+        padded = []
+        for l in lv:
+            n = l.points2.shape[0]
+            pad = lambda a: jnp.concatenate([a, jnp.zeros((pcap - n,) + a.shape[1:], a.dtype)])
+            padded.append(AlignLevel(l.map1.with_capacity(mcap), pad(l.points2), pad(l.signed2),
+                                     pad(l.weight2), pad(l.occupied2)))
+        levels.append(jax.tree_util.tree_map(lambda *a: jnp.stack(a), *padded))
+    return AlignProblem(tuple(levels), jnp.stack([p.center2 for p in problems]),
+                        jnp.stack([p.radius for p in problems]))
+
+
+# ----------------------------------------------------------------------------- loss
+
+
+def _signed_field(m1: OccupancyMap, y):
+    """``(s_1 (P,), coverage (P,))`` at points ``y (P, 3)`` of map 1's frame (module docstring)."""
+    a, _ = sample(m1, y, method="thesis")
+    known = dataclasses.replace(m1, log_odds=jnp.full_like(m1.log_odds, _KNOWN_LOG_ODDS))
+    c, _ = sample(known, y, method="thesis")
+    return 2.0 * a - c, c
+
+
+def _level_terms(level: AlignLevel, T_1_2):
+    y = rigid.transform_points(jnp.asarray(T_1_2, jnp.float32), level.points2)
+    s1, cov = _signed_field(level.map1, y)
+    w = level.weight2
+    loss = -jnp.sum(w * level.signed2 * s1) / jnp.maximum(jnp.sum(w), 1e-30)
+    return loss, s1, cov
+
+
+def problem_loss(problem: AlignProblem, T_1_2, level: int = -1):
+    """The alignment loss (module docstring) of a prepared problem at ``level`` (index into
+    ``problem.levels``, default the finest) under ``T_1_2 (4, 4)``: a float32 scalar in
+    [-1, 1]. Pure, jittable, differentiable w.r.t. ``T_1_2`` (and map 2's signed values)."""
+    return _level_terms(problem.levels[level], T_1_2)[0]
+
+
+def alignment_loss(m1: OccupancyMap, m2: OccupancyMap, T_1_2, *, level: int = 0,
+                   max_points: int = 8192, free_weight: float = 0.5, seed: int = 0):
+    """Differentiable score of how well map 2 agrees with map 1 under ``T_1_2`` (lower is better).
+
+    ``-sum_j w_j s_2(x_j) s_1(T_1_2 x_j)`` over known voxel centres ``x_j`` of map 2 (a seeded
+    subset of at most ``max_points``), with ``s = tanh(l / 2)`` the signed occupancy (unknown
+    = 0) and ``s_1`` trilinear in map 1; ``level = k`` compares copies coarsened by ``2^k``.
+    ``T_1_2 (4, 4)`` [m] may be traced (``jax.grad`` w.r.t. it works); the maps must be
+    concrete (planning runs on the host). For repeated calls prepare once with
+    ``prepare_alignment`` and use ``problem_loss``.
+    """
+    problem = prepare_alignment(m1, m2, levels=(level,), max_points=max_points,
+                                free_weight=free_weight, seed=seed)
+    return problem_loss(problem, T_1_2)
+
+
+# ----------------------------------------------------------------------------- solve
+
+
+def _objective(z, level: AlignLevel, T_start, center, radius):
+    return _level_terms(level, pose_from_increment(T_start, z, center, radius))[0]
+
+
+def _solve(problem: AlignProblem, T_init, tol, xtol, min_overlap, min_agreement, maxiter: int):
+    T = jnp.asarray(T_init, jnp.float32)
+    hist, iters = [], []
+    res = None
+    for level in problem.levels:
+        res = _solver.minimize(_objective, jnp.zeros(6, jnp.float32), level, T, problem.center2,
+                               problem.radius, maxiter=maxiter, tol=tol, xtol=xtol)
+        T = pose_from_increment(T, res.x, problem.center2, problem.radius)
+        hist.append(res.history)
+        iters.append(res.num_iterations)
+    fine = problem.levels[-1]
+    loss, s1, cov = _level_terms(fine, T)
+    w_occ = jnp.where(fine.occupied2, fine.weight2, 0.0)
+    overlap = jnp.sum(w_occ * cov) / jnp.maximum(jnp.sum(w_occ), 1e-30)
+    # occupied in map 1 at the point: interpolated probability above 1/2 <=> s1 > 0
+    agree = jnp.sum(w_occ * cov * (s1 > 0)) / jnp.maximum(jnp.sum(w_occ * cov), 1e-30)
+    finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(T))
+    status = jnp.where(~finite, STATUS_NOT_FINITE,
+             jnp.where(overlap < min_overlap, STATUS_LOW_OVERLAP,
+             jnp.where(agree < min_agreement, STATUS_POOR_AGREEMENT,
+             jnp.where(~res.converged, STATUS_MAX_ITERATIONS, STATUS_CONVERGED)))).astype(jnp.int32)
+    iters = jnp.stack(iters)
+    return AlignResult(T_1_2=T, loss=loss, loss_history=jnp.stack(hist), iterations=iters,
+                       num_iterations=jnp.sum(iters), overlap=overlap, agreement=agree,
+                       grad_norm=res.grad_norm, status=status,
+                       converged=status == STATUS_CONVERGED)
+
+
+@partial(jax.jit, static_argnames=("maxiter",))
+def _solve_jit(problem, T_init, tol, xtol, min_overlap, min_agreement, *, maxiter):
+    return _solve(problem, T_init, tol, xtol, min_overlap, min_agreement, maxiter)
+
+
+@partial(jax.jit, static_argnames=("maxiter",))
+def _solve_many_jit(problem, T_inits, tol, xtol, min_overlap, min_agreement, *, maxiter):
+    return jax.vmap(lambda T: _solve(problem, T, tol, xtol, min_overlap, min_agreement, maxiter))(T_inits)
+
+
+def solve_alignment(problem: AlignProblem, T_1_2_init, *, maxiter: int = 40, tol: float = 1e-4,
+                    xtol: float | None = None, min_overlap: float = 0.05,
+                    min_agreement: float = 0.4) -> AlignResult:
+    """Jitted coarse-to-fine L-BFGS on a prepared problem from ``T_1_2_init`` ``(4, 4)`` or
+    ``(k, 4, 4)`` (then ``vmap``-ed over the ``k`` guesses; every result field gains a leading
+    ``k``). ``maxiter`` (per level) is static; ``tol`` (gradient norm of the loss w.r.t. ``z``,
+    1/m), ``xtol`` (step length in m, default ``res / 100`` of the finest level),
+    ``min_overlap`` and ``min_agreement`` (status thresholds) are traced. To ``vmap`` over
+    pairs, stack problems with ``stack_problems`` and ``jax.vmap`` this function's core via
+    ``functools.partial`` (all arguments are pytrees)."""
+    if int(maxiter) < 1:
+        raise ValueError(f"maxiter must be >= 1, got {maxiter}")
+    T0 = np.asarray(T_1_2_init, np.float64) if not isinstance(T_1_2_init, jax.core.Tracer) else None
+    res_fine = problem.levels[-1].map1.resolution
+    xtol = res_fine / 100.0 if xtol is None else float(xtol)
+    args = (jnp.float32(tol), jnp.float32(xtol), jnp.float32(min_overlap), jnp.float32(min_agreement))
+    if T0 is not None:
+        if T0.ndim == 3:
+            for i, T in enumerate(T0):
+                check_rigid_transform(T, f"T_1_2_init[{i}]")
+            return _solve_many_jit(problem, jnp.asarray(T0, jnp.float32), *args, maxiter=int(maxiter))
+        T0 = check_rigid_transform(T0, "T_1_2_init")
+        return _solve_jit(problem, jnp.asarray(T0, jnp.float32), *args, maxiter=int(maxiter))
+    return _solve_jit(problem, T_1_2_init, *args, maxiter=int(maxiter))
+
+
+def align_dense(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, *, levels=(3, 2, 1, 0),
+                max_points: int = 8192, free_weight: float = 0.5, seed: int = 0,
+                maxiter: int = 40, tol: float = 1e-4, xtol: float | None = None,
+                min_overlap: float = 0.05, min_agreement: float = 0.4) -> AlignResult:
+    """Refine ``T_1_2`` (maps points of map 2's frame into map 1's) by dense map-to-map
+    alignment: ``prepare_alignment`` (host) then ``solve_alignment`` (jitted). See the module
+    docstring for the loss, the solver and the status codes; ``T_1_2_init`` may be ``(4, 4)``
+    or a ``(k, 4, 4)`` stack of initial guesses (solved in one ``vmap``; pick one with
+    ``best_result``). Translations in metres."""
+    problem = prepare_alignment(m1, m2, levels=levels, max_points=max_points,
+                                free_weight=free_weight, seed=seed)
+    return solve_alignment(problem, T_1_2_init, maxiter=maxiter, tol=tol, xtol=xtol,
+                           min_overlap=min_overlap, min_agreement=min_agreement)
+
+
+def best_result(results: AlignResult) -> AlignResult:
+    """From a batched ``AlignResult`` (leading ``k``), the one with the lowest final loss,
+    preferring candidates whose status is converged or max-iterations over failures."""
+    ok = (results.status == STATUS_CONVERGED) | (results.status == STATUS_MAX_ITERATIONS)
+    key = jnp.where(ok, results.loss, results.loss + 10.0)
+    key = jnp.where(jnp.isfinite(key), key, jnp.inf)
+    i = jnp.argmin(key)
+    return jax.tree_util.tree_map(lambda a: a[i], results)
+
+
+# ----------------------------------------------------------------------------- tuning API
+
+
+def transformed_occupancy(m_src: OccupancyMap, T_dst_src, points_dst, *,
+                          method: str = "trilinear", space: str = "probability"):
+    """``transform_map``'s value at destination points, with a traceable transform.
+
+    For ``points_dst (..., 3)`` [m] in frame ``dst``, samples ``m_src`` at
+    ``T_dst_src^-1 points_dst`` (eq. 5.13) with ``sample``: returns ``(value (...,), known
+    (...,))`` as ``sample`` does. Differentiable w.r.t. ``T_dst_src (4, 4)`` and the points
+    (``"trilinear"`` / ``"thesis"``), so a downstream loss on a transformed map's occupancy
+    can be descended in the transform (``transform_map`` itself plans on the host).
+    """
+    T_src_dst = rigid.inverse(jnp.asarray(T_dst_src, jnp.float32))
+    p = rigid.transform_points(T_src_dst, jnp.asarray(points_dst, jnp.float32).reshape(-1, 3))
+    v, k = sample(m_src, p, method=method, space=space)
+    shape = jnp.shape(points_dst)[:-1]
+    return v.reshape(shape), k.reshape(shape)
+
+
+def fused_log_odds(m1: OccupancyMap, m2: OccupancyMap, T_1_2, points_1):
+    """Alg. 8's fusion rule at points ``points_1 (..., 3)`` [m] of frame 1: the sum of map 1's
+    log-odds and map 2's (moved by ``T_1_2``, trilinear in log-odds) where both know the point,
+    the one known value where only one does, clamped to map 1's bounds; ``(log_odds (...,),
+    known (...,))``. Differentiable w.r.t. ``T_1_2`` -- e.g. to tune a map pose or a sensor
+    extrinsic so the merged occupancy agrees with a reference map."""
+    l1, k1 = sample(m1, points_1, space="log_odds")
+    l2, k2 = transformed_occupancy(m2, T_1_2, points_1, space="log_odds")
+    lo = jnp.where(k1, l1, 0.0) + jnp.where(k2, l2, 0.0)
+    lo = jnp.clip(lo, m1.params.clamp_min_log_odds, m1.params.clamp_max_log_odds)
+    return lo, k1 | k2
