@@ -357,6 +357,19 @@ def test_num_nodes_agrees_with_tree_module(tmp_path):
         assert tree_mod.num_nodes(m) == num_nodes(m) == read_header(path).size
 
 
+def test_writers_refuse_invalid_maps():
+    # overlapping leaves (a depth-15 leaf containing a depth-16 one), bypassing the check
+    bad = from_leaves(np.array([0, 1], np.uint64), np.array([15, 16]),
+                      np.ones(2, np.float32), 0.1, check=False)
+    for binary in (True, False):
+        with pytest.raises(ValueError, match="overlap"):
+            to_bytes(bad, binary=binary)
+    misaligned = from_leaves(np.array([3], np.uint64), np.array([15]), np.ones(1, np.float32),
+                             0.1, check=False)
+    with pytest.raises(ValueError, match="aligned"):
+        to_bytes(misaligned)
+
+
 def test_save_is_atomic_and_checks_extension(tmp_path):
     m = from_leaves(np.zeros(1, np.uint64), np.full(1, 16), np.ones(1, np.float32), 0.1)
     target = tmp_path / "m.bt"

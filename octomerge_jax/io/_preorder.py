@@ -96,6 +96,18 @@ def group_sizes(codes: np.ndarray, depths: np.ndarray) -> np.ndarray:
     return depths - d_common
 
 
+def validate_leaves(codes: np.ndarray, depths: np.ndarray) -> None:
+    """``ValueError`` unless codes are strictly increasing, aligned to their depths and the
+    leaves disjoint (the ``OccupancyMap`` invariants the writers rely on)."""
+    if codes.size and not np.all(codes[1:] > codes[:-1]):
+        raise ValueError("leaf codes must be strictly increasing (an invalid OccupancyMap)")
+    if np.any(depths > TREE_DEPTH):
+        raise ValueError("leaf depths must lie in 0..16")
+    if np.any(codes & ~MASKS[depths]):
+        raise ValueError("a leaf code is not aligned to its depth (not a min-corner code)")
+    group_sizes(codes, depths)  # raises if leaves overlap
+
+
 def num_nodes(codes, depths) -> int:
     """OctoMap ``size()`` of the tree whose leaves are the given sorted, disjoint leaves:
     leaves plus every distinct ancestor, root included (0 for no leaves)."""

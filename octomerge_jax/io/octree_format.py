@@ -457,6 +457,7 @@ def _encode(occupancy_map, binary: bool) -> tuple[bytes, int]:
     if not isinstance(occupancy_map, _map.OccupancyMap):
         raise TypeError(f"expected an OccupancyMap, got {type(occupancy_map).__name__}")
     codes, depths, log_odds = _host_leaves(occupancy_map)
+    _preorder.validate_leaves(codes, depths)
     if binary:
         p = _params_f32(occupancy_map.params)
         codes, depths, log_odds = _expand_root(codes, depths, log_odds)
