@@ -13,7 +13,7 @@ import dataclasses
 
 import numpy as np
 
-from ..insert import insert_point_cloud
+from ..insert import insert_point_clouds
 from ..map import OccupancyMap, OccupancyParams, empty
 from .scenes import Scene, make_scene
 from .sensors import DepthCamera, scan
@@ -43,13 +43,12 @@ class RobotRun:
 def build_map(scans, poses_map_sensor, resolution: float, max_range: float = -1.0,
               params: OccupancyParams | None = None) -> OccupancyMap:
     """Insert sensor-frame scans at their poses (OctoMap ``insertPointCloud`` per scan)."""
-    m = empty(resolution, params)
+    clouds, origins = [], []
     for pts, T in zip(scans, np.asarray(poses_map_sensor, dtype=np.float64)):
-        if len(pts) == 0:
-            continue
-        world = np.asarray(pts, np.float64) @ T[:3, :3].T + T[:3, 3]
-        m = insert_point_cloud(m, world.astype(np.float32), T[:3, 3].astype(np.float32), max_range)
-    return m
+        clouds.append((np.asarray(pts, np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
+        origins.append(T[:3, 3])
+    return insert_point_clouds(empty(resolution, params), clouds, np.asarray(origins).reshape(-1, 3),
+                               max_range)
 
 
 def simulate_runs(scene="lab", *, sensor=None, spacing: float = 0.35, yaw_2_rad: float = np.pi / 4,

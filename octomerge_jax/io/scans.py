@@ -1,0 +1,411 @@
+"""Scan files: OctoMap ScanGraph (``.graph``), plain scan logs (``.dat``/``.log``/``.txt``),
+and single point clouds (PLY via trimesh, PCD, XYZ).
+
+A ``Scan`` is one point cloud in its **sensor frame** plus the sensor pose ``T_world_sensor``
+(4x4): what OctoMap's ``ScanNode`` holds and what ``graph2tree`` inserts (points transformed by
+the pose, sensor origin at the pose's translation).
+
+ScanGraph binary layout (``src/ScanGraph.cpp``, ``Pointcloud.cpp``, ``Vector3.cpp``,
+``Quaternion.cpp``, ``Pose6D.cpp``; little-endian, no header)::
+
+    uint32 num_nodes
+    num_nodes x node:   uint32 num_points
+                        num_points x (int32 3, float64 x, y, z)
+                        pose: int32 3, float64 x, y, z; int32 4, float64 qw, qx, qy, qz
+                        uint32 id
+    uint32 num_edges
+    num_edges x edge:   uint32 first_id, uint32 second_id, pose (as above), float64 weight
+
+Plain log (``ScanGraph::readPlainASCII``): ``NODE x y z roll pitch yaw`` starts a scan (angles
+in radians), following ``x y z`` lines are its points; empty lines and lines starting with
+``#`` or a space are skipped. A file of bare ``x y z`` lines is read as one scan at the
+identity pose (OctoMap rejects those; we accept them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io as _io
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from .._fileutil import atomic_output
+from ..sim.trajectory import pose_from_xyz_rpy
+
+__all__ = ["Scan", "ScanEdge", "read_scan_graph", "write_scan_graph", "read_scan_log",
+           "write_scan_log", "read_point_cloud", "read_scans", "quaternion_to_matrix",
+           "matrix_to_quaternion", "matrix_to_rpy"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Scan:
+    """One scan: ``points (n, 3)`` float64 [m] in the sensor frame, ``pose (4, 4)``
+    ``T_world_sensor``, and the ScanGraph node ``id``."""
+
+    points: np.ndarray
+    pose: np.ndarray
+    id: int = 0
+
+    @property
+    def sensor_origin(self) -> np.ndarray:
+        """``(3,)`` sensor position [m] in the world frame."""
+        return self.pose[:3, 3].copy()
+
+    def world_points(self) -> np.ndarray:
+        """``(n, 3)`` points [m] in the world frame."""
+        return self.points @ self.pose[:3, :3].T + self.pose[:3, 3]
+
+
+@dataclasses.dataclass(frozen=True)
+class ScanEdge:
+    """A ScanGraph edge: relative pose ``constraint`` (4x4) between node ids, and a weight."""
+
+    first: int
+    second: int
+    constraint: np.ndarray
+    weight: float = 1.0
+
+
+# --------------------------------------------------------------------------- rotations
+
+
+def quaternion_to_matrix(q) -> np.ndarray:
+    """Unit quaternion ``(w, x, y, z)`` -> 3x3 rotation (normalised first)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quaternion(R) -> np.ndarray:
+    """3x3 rotation -> unit quaternion ``(w, x, y, z)`` with ``w >= 0``."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = [0.0, 0.0, 0.0, 0.0]
+        q[0] = (R[k, j] - R[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (R[j, i] + R[i, j]) / s
+        q[1 + k] = (R[k, i] + R[i, k]) / s
+    q = np.array(q)
+    return q if q[0] >= 0 else -q
+
+
+def matrix_to_rpy(R) -> tuple[float, float, float]:
+    """3x3 rotation -> (roll, pitch, yaw) [rad] with ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    R = np.asarray(R, dtype=np.float64)
+    pitch = float(np.arcsin(np.clip(-R[2, 0], -1.0, 1.0)))
+    roll = float(np.arctan2(R[2, 1], R[2, 2]))
+    yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+    return roll, pitch, yaw
+
+
+# --------------------------------------------------------------------------- .graph
+
+
+class _Reader:
+    def __init__(self, data: bytes, path):
+        self.data, self.pos, self.path = data, 0, path
+
+    def need(self, n: int, what: str):
+        if self.pos + n > len(self.data):
+            raise ValueError(f"{self.path}: truncated ScanGraph at byte offset {self.pos}: "
+                             f"expected {n} bytes for {what}, {len(self.data) - self.pos} left")
+
+    def u32(self, what: str) -> int:
+        self.need(4, what)
+        (v,) = struct.unpack_from("<I", self.data, self.pos)
+        self.pos += 4
+        return v
+
+    def tag(self, expected: int, what: str):
+        at = self.pos
+        self.need(4, what)
+        (v,) = struct.unpack_from("<i", self.data, self.pos)
+        if v != expected:
+            raise ValueError(f"{self.path}: bad ScanGraph {what} at byte offset {at}: expected "
+                             f"element count {expected}, found {v}")
+        self.pos += 4
+
+    def f64(self, n: int, what: str) -> np.ndarray:
+        self.need(8 * n, what)
+        v = np.frombuffer(self.data, "<f8", n, self.pos).astype(np.float64)
+        self.pos += 8 * n
+        return v
+
+    def pose(self, what: str) -> np.ndarray:
+        self.tag(3, f"{what} translation")
+        t = self.f64(3, f"{what} translation")
+        self.tag(4, f"{what} rotation")
+        at = self.pos
+        q = self.f64(4, f"{what} rotation")
+        if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+            raise ValueError(f"{self.path}: invalid quaternion {q.tolist()} at byte offset {at}")
+        T = np.eye(4)
+        T[:3, :3] = quaternion_to_matrix(q)
+        T[:3, 3] = t
+        return T
+
+
+def read_scan_graph(path, *, with_edges: bool = False):
+    """Read an OctoMap ScanGraph ``.graph`` file -> ``list[Scan]`` (or ``(scans, edges)``).
+
+    Raises ``ValueError`` naming the byte offset of the first malformed element.
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    r = _Reader(data, path)
+    n_nodes = r.u32("node count")
+    if n_nodes > len(data) // 4:
+        raise ValueError(f"{path}: implausible node count {n_nodes} at byte offset 0 "
+                         f"(file has {len(data)} bytes); not a ScanGraph file?")
+    scans = []
+    for i in range(n_nodes):
+        at = r.pos
+        n_pts = r.u32(f"node {i} point count")
+        if n_pts * 28 > len(data) - r.pos:
+            raise ValueError(f"{path}: node {i} at byte offset {at} claims {n_pts} points but "
+                             f"only {len(data) - r.pos} bytes remain")
+        block = r.data[r.pos:r.pos + 28 * n_pts]
+        rec = np.frombuffer(block, dtype=np.dtype([("n", "<i4"), ("xyz", "<f8", 3)]), n_pts)
+        bad = np.flatnonzero(rec["n"] != 3)
+        if bad.size:
+            raise ValueError(f"{path}: bad ScanGraph point {bad[0]} of node {i} at byte offset "
+                             f"{r.pos + 28 * int(bad[0])}: expected element count 3, found "
+                             f"{int(rec['n'][bad[0]])}")
+        pts = rec["xyz"].astype(np.float64)
+        r.pos += 28 * n_pts
+        pose = r.pose(f"node {i} pose")
+        node_id = r.u32(f"node {i} id")
+        scans.append(Scan(pts, pose, node_id))
+    edges = []
+    if r.pos == len(data):
+        raise ValueError(f"{path}: truncated ScanGraph at byte offset {r.pos}: missing edge count")
+    n_edges = r.u32("edge count")
+    ids = {s.id for s in scans}
+    for i in range(n_edges):
+        at = r.pos
+        first, second = r.u32(f"edge {i} first id"), r.u32(f"edge {i} second id")
+        if first not in ids or second not in ids:
+            raise ValueError(f"{path}: edge {i} at byte offset {at} refers to unknown node "
+                             f"{first if first not in ids else second}")
+        constraint = r.pose(f"edge {i} constraint")
+        (weight,) = r.f64(1, f"edge {i} weight")
+        edges.append(ScanEdge(first, second, constraint, float(weight)))
+    if r.pos != len(data):
+        raise ValueError(f"{path}: {len(data) - r.pos} unexpected trailing bytes at byte offset {r.pos}")
+    return (scans, edges) if with_edges else scans
+
+
+def _pose_bytes(T) -> bytes:
+    T = np.asarray(T, dtype=np.float64)
+    q = matrix_to_quaternion(T[:3, :3])
+    return struct.pack("<i3di4d", 3, *T[:3, 3], 4, *q)
+
+
+def write_scan_graph(path, scans, edges=None, *, connect_previous: bool = True) -> None:
+    """Write scans (``Scan`` or ``(points, pose)`` pairs) as an OctoMap ``.graph`` file
+    (atomically). Without ``edges``, consecutive nodes are linked as OctoMap's
+    ``connectPrevious`` does (constraint ``pose_a^-1 pose_b``, weight 1)."""
+    scans = [s if isinstance(s, Scan) else Scan(np.asarray(s[0], float), np.asarray(s[1], float), i)
+             for i, s in enumerate(scans)]
+    buf = _io.BytesIO()
+    buf.write(struct.pack("<I", len(scans)))
+    for s in scans:
+        pts = np.asarray(s.points, dtype=np.float64).reshape(-1, 3)
+        rec = np.zeros(len(pts), dtype=np.dtype([("n", "<i4"), ("xyz", "<f8", 3)]))
+        rec["n"] = 3
+        rec["xyz"] = pts
+        buf.write(struct.pack("<I", len(pts)))
+        buf.write(rec.tobytes())
+        buf.write(_pose_bytes(s.pose))
+        buf.write(struct.pack("<I", int(s.id)))
+    if edges is None:
+        edges = [ScanEdge(a.id, b.id, np.linalg.inv(a.pose) @ b.pose, 1.0)
+                 for a, b in zip(scans[:-1], scans[1:])] if connect_previous else []
+    buf.write(struct.pack("<I", len(edges)))
+    for e in edges:
+        buf.write(struct.pack("<II", int(e.first), int(e.second)))
+        buf.write(_pose_bytes(e.constraint))
+        buf.write(struct.pack("<d", float(e.weight)))
+    with atomic_output(path) as tmp:
+        Path(tmp).write_bytes(buf.getvalue())
+
+
+# --------------------------------------------------------------------------- plain logs
+
+
+def read_scan_log(path) -> list[Scan]:
+    """Read a plain scan log (``NODE x y z roll pitch yaw`` + ``x y z`` lines), or bare
+    ``x y z`` lines as one scan at the identity pose. Errors name the line number."""
+    path = Path(path)
+    scans: list[Scan] = []
+    pose = None
+    pts: list[tuple[float, float, float]] = []
+    bare = None
+    with open(path, encoding="utf-8", errors="strict") as f:
+        try:
+            lines = f.read().splitlines()
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{path}: not a text scan log ({err})") from None
+    for lineno, line in enumerate(lines, 1):
+        if not line or line.startswith("#") or line.startswith(" ") or not line.strip():
+            continue
+        tok = line.split()
+        if tok[0] == "NODE":
+            if bare:
+                raise ValueError(f"{path}:{lineno}: NODE after bare points (points must follow a NODE line)")
+            if len(tok) != 7:
+                raise ValueError(f"{path}:{lineno}: expected 'NODE x y z roll pitch yaw', got {line!r}")
+            try:
+                vals = [float(v) for v in tok[1:]]
+            except ValueError:
+                raise ValueError(f"{path}:{lineno}: non-numeric NODE pose {line!r}") from None
+            if pose is not None:
+                scans.append(Scan(np.asarray(pts, np.float64).reshape(-1, 3), pose, len(scans)))
+            pose, pts, bare = pose_from_xyz_rpy(*vals), [], False
+            continue
+        if len(tok) < 3:
+            raise ValueError(f"{path}:{lineno}: expected 'x y z', got {line!r}")
+        try:
+            p = (float(tok[0]), float(tok[1]), float(tok[2]))
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: non-numeric point {line!r}") from None
+        if not all(np.isfinite(p)):
+            raise ValueError(f"{path}:{lineno}: non-finite point {line!r}")
+        if pose is None:
+            pose, bare = np.eye(4), True
+        pts.append(p)
+    if pose is not None:
+        scans.append(Scan(np.asarray(pts, np.float64).reshape(-1, 3), pose, len(scans)))
+    if not scans:
+        raise ValueError(f"{path}: no scans found (expected NODE lines or x y z points)")
+    return scans
+
+
+def write_scan_log(path, scans) -> None:
+    """Write scans as a plain log (``NODE x y z roll pitch yaw`` + points), atomically."""
+    out = _io.StringIO()
+    for s in scans:
+        s = s if isinstance(s, Scan) else Scan(np.asarray(s[0], float), np.asarray(s[1], float))
+        roll, pitch, yaw = matrix_to_rpy(s.pose[:3, :3])
+        x, y, z = s.pose[:3, 3]
+        out.write(f"NODE {x!r} {y!r} {z!r} {roll!r} {pitch!r} {yaw!r}\n")
+        for p in np.asarray(s.points, np.float64).reshape(-1, 3):
+            out.write(f"{p[0]!r} {p[1]!r} {p[2]!r}\n")
+    with atomic_output(path) as tmp:
+        Path(tmp).write_text(out.getvalue(), encoding="utf-8")
+
+
+# --------------------------------------------------------------------------- point clouds
+
+
+def _read_pcd(path: Path) -> np.ndarray:
+    data = path.read_bytes()
+    fields = sizes = types = counts = None
+    points = None
+    pos = 0
+    lineno = 0
+    while True:
+        end = data.find(b"\n", pos)
+        if end < 0:
+            raise ValueError(f"{path}: PCD header has no DATA line")
+        lineno += 1
+        line = data[pos:end].decode("ascii", "replace").strip()
+        pos = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *vals = line.split()
+        key = key.upper()
+        if key == "FIELDS":
+            fields = vals
+        elif key == "SIZE":
+            sizes = [int(v) for v in vals]
+        elif key == "TYPE":
+            types = vals
+        elif key == "COUNT":
+            counts = [int(v) for v in vals]
+        elif key == "POINTS":
+            points = int(vals[0])
+        elif key == "DATA":
+            kind = vals[0].lower() if vals else ""
+            break
+    if fields is None or points is None:
+        raise ValueError(f"{path}: PCD header lacks FIELDS or POINTS (line {lineno})")
+    for axis in "xyz":
+        if axis not in fields:
+            raise ValueError(f"{path}: PCD has no '{axis}' field (fields {fields})")
+    counts = counts or [1] * len(fields)
+    if kind == "ascii":
+        rows = data[pos:].decode("ascii").split("\n")
+        vals = []
+        for i, row in enumerate(rows):
+            if not row.strip():
+                continue
+            tok = row.split()
+            if len(tok) != sum(counts):
+                raise ValueError(f"{path}:{lineno + 1 + i}: expected {sum(counts)} values, got {len(tok)}")
+            vals.append([float(t) for t in tok])
+        arr = np.asarray(vals, np.float64).reshape(-1, sum(counts))
+        col = np.cumsum([0] + counts)
+        xyz = np.stack([arr[:, col[fields.index(a)]] for a in "xyz"], axis=1)
+    elif kind == "binary":
+        if sizes is None or types is None:
+            raise ValueError(f"{path}: binary PCD needs SIZE and TYPE")
+        dt = np.dtype([(f if f != "_" else f"_{i}", f"<{t.lower()}{s}", (c,)) for i, (f, s, t, c)
+                       in enumerate(zip(fields, sizes, types, counts))])
+        if len(data) - pos < dt.itemsize * points:
+            raise ValueError(f"{path}: binary PCD truncated at byte offset {len(data)}: "
+                             f"{points} points need {dt.itemsize * points} bytes after offset {pos}")
+        rec = np.frombuffer(data, dt, points, pos)
+        xyz = np.stack([rec[a][:, 0].astype(np.float64) for a in "xyz"], axis=1)
+    else:
+        raise ValueError(f"{path}: unsupported PCD DATA kind {kind!r} (ascii and binary are supported)")
+    return xyz[np.all(np.isfinite(xyz), axis=1)]
+
+
+def read_point_cloud(path) -> np.ndarray:
+    """A single point cloud file -> ``(n, 3)`` float64 [m]: ``.ply`` (trimesh; mesh vertices
+    or point clouds), ``.pcd`` (ascii/binary), ``.xyz``/``.txt``/``.csv`` (x y z per line)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".pcd":
+        return _read_pcd(path)
+    if suffix in (".ply", ".obj", ".off", ".stl", ".glb"):
+        import trimesh
+
+        try:
+            geom = trimesh.load(str(path))
+        except Exception as err:  # trimesh raises many types for broken files
+            raise ValueError(f"{path}: cannot read point cloud ({err})") from None
+        if isinstance(geom, trimesh.Scene):
+            geom = geom.to_geometry() if hasattr(geom, "to_geometry") else geom.dump(concatenate=True)
+        return np.asarray(geom.vertices, dtype=np.float64).reshape(-1, 3)
+    scans = read_scan_log(path)
+    if len(scans) != 1 or not np.allclose(scans[0].pose, np.eye(4)):
+        raise ValueError(f"{path}: expected bare 'x y z' lines, found {len(scans)} NODE scans")
+    return scans[0].points
+
+
+def read_scans(path) -> list[Scan]:
+    """Any supported scan file -> ``list[Scan]``: ``.graph`` (ScanGraph), ``.dat``/``.log``/
+    ``.txt`` (plain log), or one point cloud (``.ply``/``.pcd``/``.xyz``) at the identity pose."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such scan file")
+    suffix = path.suffix.lower()
+    if suffix == ".graph":
+        return read_scan_graph(path)
+    if suffix in (".dat", ".log", ".txt"):
+        return read_scan_log(path)
+    return [Scan(read_point_cloud(path), np.eye(4), 0)]
