@@ -161,6 +161,11 @@ def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 
     sizes = jnp.atleast_1d(jnp.asarray(cell_sizes, jnp.float32))
     if sizes.shape[0] != len(table_sizes):
         raise ValueError(f"{sizes.shape[0]} cell sizes but {len(table_sizes)} table sizes")
+    return _build_grids_jit(points, count, sizes, table_sizes=table_sizes, cell_capacity=int(cell_capacity))
+
+
+@partial(jax.jit, static_argnames=("table_sizes", "cell_capacity"))
+def _build_grids_jit(points, count, sizes, *, table_sizes, cell_capacity):
     xyzs, idxs, ovs, bases, boxes = [], [], [], [], []
     base = 0
     for l, t in enumerate(table_sizes):
@@ -209,6 +214,7 @@ def _nearest_block(xyz, index, base, mask, origin, dims, dense, h, q):
     return jnp.where(found, best, jnp.inf), jnp.where(found, idx, -1)
 
 
+@jax.jit
 def nearest(grid: HashGrid, queries, level=0):
     """Nearest grid point to each query ``(n, 3)`` [m] among the 27 cells around it.
 
@@ -229,6 +235,7 @@ def nearest(grid: HashGrid, queries, level=0):
     return d2.reshape(n), idx.reshape(n)
 
 
+@jax.jit
 def any_within(grid: HashGrid, queries, radius, level=0):
     """``(n,)`` bool: some grid point lies within ``radius`` [m] of each query
     (exact for ``radius <= cell_size[level]`` when nothing overflowed)."""

@@ -1,0 +1,62 @@
+"""Hashed-grid nearest neighbours against brute force; overflow is reported, never silent."""
+
+import jax
+import numpy as np
+import pytest
+
+from octomerge_jax.registration import neighbors as nb
+
+
+def _brute(P, Q):
+    D = ((Q[:, None, :].astype(np.float64) - P[None].astype(np.float64)) ** 2).sum(-1)
+    return D.min(1), D.argmin(1)
+
+
+@pytest.mark.parametrize("extent,table", [(4.0, 4096), (400.0, 256)])  # dense box / hashed
+def test_nearest_is_exact_within_the_cell_size(extent, table):
+    rng = np.random.default_rng(0)
+    P = rng.uniform(-extent, extent, (3000, 3)).astype(np.float32)
+    if extent > 10:  # clustered, so that cells stay below capacity
+        P = (rng.integers(-4, 4, (3000, 1)) * 50 + rng.uniform(-2, 2, (3000, 3))).astype(np.float32)
+    Q = (P[rng.integers(0, 2900, 1000)] + rng.normal(0, 0.3, (1000, 3))).astype(np.float32)
+    h = 0.6
+    g = nb.build_grid(P, 2900, h, table_size=table, cell_capacity=32)
+    assert int(g.overflow[0]) == 0
+    assert bool(g.dense[0]) == (extent < 10)
+    d2, idx = nb.nearest(g, Q)
+    bd, bi = _brute(P[:2900], Q)
+    m = bd <= h * h
+    assert m.mean() > 0.5
+    np.testing.assert_array_equal(np.asarray(idx)[m], bi[m])
+    np.testing.assert_allclose(np.asarray(d2)[m], bd[m], rtol=1e-5, atol=1e-9)
+    assert np.all(np.asarray(idx) < 2900)  # padding rows are never returned
+    within = np.asarray(nb.any_within(g, Q, 0.4))
+    np.testing.assert_array_equal(within, bd <= 0.16)
+
+
+def test_overflow_is_counted_and_empty_grid_finds_nothing():
+    P = np.zeros((100, 3), np.float32) + 0.5  # one cell, 100 points
+    g = nb.build_grid(P, 100, 1.0, table_size=256, cell_capacity=8)
+    assert int(g.overflow[0]) == 92
+    d2, idx = nb.nearest(g, np.array([[0.4, 0.5, 0.5]], np.float32))
+    assert int(idx[0]) >= 0 and float(d2[0]) == pytest.approx(0.01, rel=1e-4)
+    g0 = nb.build_grid(P, 0, 1.0, table_size=256, cell_capacity=8)
+    d2, idx = nb.nearest(g0, np.array([[0.4, 0.5, 0.5], [np.nan, 0, 0]], np.float32))
+    assert np.all(np.asarray(idx) == -1) and np.all(np.isinf(np.asarray(d2)))
+
+
+def test_levels_and_chunked_queries():
+    rng = np.random.default_rng(2)
+    P = rng.uniform(0, 20, (5000, 3)).astype(np.float32)
+    sizes = np.array([4.0, 1.0], np.float32)
+    g = nb.build_grids(P, 5000, sizes, table_sizes=nb.level_table_sizes(5000, sizes), cell_capacity=64)
+    Q = rng.uniform(0, 20, (4096, 3)).astype(np.float32)  # two 2048-query blocks
+    bd, bi = _brute(P, Q)
+    f = jax.jit(nb.nearest)
+    for level, h in enumerate(sizes):
+        assert int(g.overflow[level]) == 0
+        d2, idx = f(g, Q, level)
+        m = bd <= h * h
+        np.testing.assert_array_equal(np.asarray(idx)[m], bi[m])
+    with pytest.raises(ValueError, match="powers of two"):
+        nb.build_grid(P, 10, 1.0, table_size=300)
