@@ -139,7 +139,7 @@ class _Reader:
 
     def f64(self, n: int, what: str) -> np.ndarray:
         self.need(8 * n, what)
-        v = np.frombuffer(self.data, "<f8", n, self.pos).astype(np.float64)
+        v = np.frombuffer(self.data, "<f8", count=n, offset=self.pos).astype(np.float64)
         self.pos += 8 * n
         return v
 
@@ -177,7 +177,7 @@ def read_scan_graph(path, *, with_edges: bool = False):
             raise ValueError(f"{path}: node {i} at byte offset {at} claims {n_pts} points but "
                              f"only {len(data) - r.pos} bytes remain")
         block = r.data[r.pos:r.pos + 28 * n_pts]
-        rec = np.frombuffer(block, dtype=np.dtype([("n", "<i4"), ("xyz", "<f8", 3)]), n_pts)
+        rec = np.frombuffer(block, dtype=np.dtype([("n", "<i4"), ("xyz", "<f8", 3)]), count=n_pts)
         bad = np.flatnonzero(rec["n"] != 3)
         if bad.size:
             raise ValueError(f"{path}: bad ScanGraph point {bad[0]} of node {i} at byte offset "
@@ -367,7 +367,7 @@ def _read_pcd(path: Path) -> np.ndarray:
         if len(data) - pos < dt.itemsize * points:
             raise ValueError(f"{path}: binary PCD truncated at byte offset {len(data)}: "
                              f"{points} points need {dt.itemsize * points} bytes after offset {pos}")
-        rec = np.frombuffer(data, dt, points, pos)
+        rec = np.frombuffer(data, dt, count=points, offset=pos)
         xyz = np.stack([rec[a][:, 0].astype(np.float64) for a in "xyz"], axis=1)
     else:
         raise ValueError(f"{path}: unsupported PCD DATA kind {kind!r} (ascii and binary are supported)")

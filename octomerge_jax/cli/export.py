@@ -1,0 +1,46 @@
+"""``octomerge export MAP OUT``: occupied voxels as a coloured mesh (or points) for viewers."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ._common import CliError
+
+EPILOG = """examples:
+  octomerge export merged.bt merged.glb                  # cubes coloured by height
+  octomerge export robot1.ot robot1.ply --color occupancy
+  octomerge export room.bt room_points.ply --points
+"""
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "export", help="write occupied voxels as a .glb/.ply/.obj mesh for viewing",
+        description="Write a map's voxels (occupied by default) as a mesh of cubes, one per "
+                    "leaf at its size, coloured by height or occupancy probability; or as "
+                    "points (leaf centres) in a .ply.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("map", type=Path, metavar="MAP", help="a .bt or .ot file")
+    p.add_argument("output", type=Path, metavar="OUT", help="output .glb, .ply or .obj")
+    p.add_argument("--color", choices=("height", "occupancy"), default="height",
+                   help="colouring (default: height)")
+    p.add_argument("--which", choices=("occupied", "free", "all"), default="occupied",
+                   help="which leaves to export (default: occupied)")
+    p.add_argument("--points", action="store_true", help="leaf centres as points (.ply only)")
+    p.add_argument("--force", action="store_true", help="allow OUT to be the input file")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from .._fileutil import check_not_input
+    from ..io import load
+    from ..io.export import export_map
+
+    if not args.map.is_file():
+        raise CliError(f"{args.map}: no such file")
+    check_not_input(args.output, [args.map], args.force)
+    m = load(args.map)
+    export_map(m, args.output, which=args.which, color_by=args.color, points=args.points)
+    print(f"wrote {args.output} ({m.num_leaves} leaves in map)")
+    return 0
