@@ -118,38 +118,45 @@ class FuseReport:
 # ----------------------------------------------------------------------------- code arithmetic
 # A code is (hi, lo) int32 words of 24 bits = 8 octal digits each; digit k (0 = finest level)
 # lives in lo for k < 8, in hi for 8 <= k < 16, and digit 16 (only for the end 2^48 of the
-# whole volume) is bit 24 of hi. All level indices k below are static Python ints.
+# whole volume) is bit 24 of hi. Level indices k may be traced (loops over levels are
+# ``fori_loop``s, which keeps compile times short).
 
 
-def _digit(hi, lo, k: int):
-    if k < 8:
-        return jnp.right_shift(lo, 3 * k) & 7
-    if k < 16:
-        return jnp.right_shift(hi, 3 * (k - 8)) & 7
-    return jnp.right_shift(hi, 24)
+def _word_shift(k):
+    """(in_hi, shift within the word) of digit ``k``."""
+    in_hi = k >= 8
+    return in_hi, jnp.where(in_hi, 3 * (k - 8), 3 * k)
 
 
-def _low_nonzero(hi, lo, k: int):
-    """Any of the digits below level ``k`` non-zero (``code mod 8^k != 0``)."""
-    if k == 0:
-        return jnp.zeros(hi.shape, bool)
-    if k <= 8:
-        return (lo & ((1 << (3 * k)) - 1)) != 0
-    return (lo != 0) | ((hi & ((1 << (3 * (k - 8))) - 1)) != 0)
+def _digit(hi, lo, k):
+    in_hi, sh = _word_shift(k)
+    return jnp.right_shift(jnp.where(in_hi, hi, lo), sh) & 7
 
 
-def _trunc(hi, lo, k: int):
+def _low_masks(k):
+    """(hi_mask, lo_mask) of the digits below level ``k``."""
+    lo_bits = jnp.minimum(3 * k, 24)
+    hi_bits = jnp.maximum(3 * k - 24, 0)
+    return jnp.left_shift(1, hi_bits) - 1, jnp.left_shift(1, lo_bits) - 1
+
+
+def _low_nonzero(hi, lo, k):
+    """Any digit below level ``k`` non-zero (``code mod 8^k != 0``)."""
+    hm, lm = _low_masks(k)
+    return ((lo & lm) != 0) | ((hi & hm) != 0)
+
+
+def _trunc(hi, lo, k):
     """Clear the digits below level ``k``."""
-    if k <= 8:
-        return hi, lo & ~((1 << (3 * k)) - 1) & _MASK
-    return hi & ~((1 << (3 * (k - 8))) - 1), jnp.zeros_like(lo)
+    hm, lm = _low_masks(k)
+    return hi & ~hm, lo & ~lm
 
 
-def _put_digit(hi, lo, k: int, val):
-    """Or ``val`` (0..7, int32) into digit ``k`` (which must be clear)."""
-    if k < 8:
-        return hi, lo | jnp.left_shift(val, 3 * k)
-    return hi | jnp.left_shift(val, 3 * (k - 8)), lo
+def _put_digit(hi, lo, k, val):
+    """Or ``val`` (0..7) into digit ``k`` (which must be clear)."""
+    in_hi, sh = _word_shift(k)
+    v = jnp.left_shift(val, sh)
+    return jnp.where(in_hi, hi | v, hi), jnp.where(in_hi, lo, lo | v)
 
 
 def _end_words(code, depth):
@@ -166,16 +173,11 @@ def _less(ah, al, bh, bl):
     return (ah < bh) | ((ah == bh) & (al < bl))
 
 
-def _gap_plan(sh, sl, eh, el):
-    """Canonical decomposition of Morton intervals ``[s, e)`` into maximal aligned cells.
-
-    Returns ``(p, base, left, right, total)``: ``p`` the top level (cells at level ``p`` in
-    the middle), ``base`` the first middle digit, ``left[k]`` / ``right[k]`` the number of
-    level-``k`` cells ascending from ``s`` / descending to ``e`` (lists of 16 arrays), and
-    ``total`` cells (0 for empty intervals). Level ``p`` is the top octal digit where
-    ``s - 1`` and ``e`` differ (16 when ``s = 0``): ``[s, e]`` holds a multiple of ``8^k``
-    exactly for ``k <= p``.
-    """
+def _gap_top(sh, sl, eh, el):
+    """Top level ``p`` of the canonical decomposition of ``[s, e)`` and helpers: the top octal
+    digit where ``s - 1`` and ``e`` differ (16 when ``s = 0``): ``[s, e]`` holds a multiple of
+    ``8^k`` exactly for ``k <= p``. Returns ``(nonempty, p, base)``, ``base`` = first
+    digit of the level-``p`` cells (``d_p(s - 1) + 1``, or 0 when ``s = 0``)."""
     nonempty = _less(sh, sl, eh, el)
     zero = (sh == 0) & (sl == 0)
     borrow = sl == 0
@@ -186,86 +188,92 @@ def _gap_plan(sh, sl, eh, el):
     top_bit = jnp.where(xh != 0, 55 - jax.lax.clz(xh), 31 - jax.lax.clz(xl))
     p = jnp.where(zero, _D, top_bit // 3)
     p = jnp.where(nonempty, p, 0)
-    left, right = [], []
-    total = jnp.zeros(sh.shape, jnp.int32)
-    base = jnp.zeros(sh.shape, jnp.int32)
-    top_e = jnp.zeros(sh.shape, jnp.int32)
-    for k in range(_D + 1):
-        if k < _D:
-            below = k < p
-            lk = jnp.where(below, (8 - _digit(sh, sl, k) - _low_nonzero(sh, sl, k).astype(jnp.int32)) & 7, 0)
-            rk = jnp.where(below, _digit(eh, el, k), 0)
-            left.append(lk)
-            right.append(rk)
-            total = total + lk + rk
-        at = p == k
-        base = jnp.where(at, _digit(mh, ml, k) + 1, base)
-        top_e = jnp.where(at, _digit(eh, el, k), top_e)
-    base = jnp.where(zero, 0, base)
-    total = jnp.where(nonempty, total + top_e - base, 0)
-    return p, base, left, right, total
+    base = jnp.where(zero, 0, _digit(mh, ml, p) + 1)
+    return nonempty, p, base
+
+
+def _left_count(sh, sl, k, p):
+    """Cells at level ``k`` ascending from ``s`` (0 unless ``k < p``)."""
+    n = (8 - _digit(sh, sl, k) - _low_nonzero(sh, sl, k).astype(jnp.int32)) & 7
+    return jnp.where(k < p, n, 0)
+
+
+def _gap_plan(sh, sl, eh, el):
+    """Number of cells of the canonical decomposition of Morton intervals ``[s, e)`` into
+    maximal aligned octree cells (0 for empty intervals). Ascending from ``s`` there are
+    ``(8 - d_k(s) - [s mod 8^k != 0]) mod 8`` cells at each level ``k < p``, then
+    ``d_p(e) - base`` at level ``p``, then ``d_k(e)`` descending to ``e``: at most 7 per
+    level and side."""
+    nonempty, p, base = _gap_top(sh, sl, eh, el)
+
+    def body(k, total):
+        return total + _left_count(sh, sl, k, p) + jnp.where(k < p, _digit(eh, el, k), 0)
+
+    total = jax.lax.fori_loop(0, _D, body, _digit(eh, el, p) - base)
+    return jnp.where(nonempty, total, 0)
 
 
 def _gap_cell(sh, sl, eh, el, t):
     """The ``t``-th cell (Morton order) of the decomposition of ``[s, e)``:
-    ``(hi, lo, depth)``. ``t`` must be below the interval's total."""
-    p, base, left, right, _ = _gap_plan(sh, sl, eh, el)
-    out_h = jnp.zeros_like(sh)
-    out_l = jnp.zeros_like(sl)
-    out_k = jnp.zeros_like(sh)
-    done = jnp.zeros(sh.shape, bool)
-    cum = jnp.zeros_like(t)
+    ``(hi, lo, depth)``. ``t`` must be below the interval's cell count."""
+    _, p, base = _gap_top(sh, sl, eh, el)
+    zeros = jnp.zeros_like(sh)
 
-    def take(sel, h, l, k, done, out_h, out_l, out_k):
+    def pick(state, sel, h, l, k):
+        done, oh, ol, ok, cum = state
         sel = sel & ~done
-        return (done | sel, jnp.where(sel, h, out_h), jnp.where(sel, l, out_l),
-                jnp.where(sel, k, out_k))
+        return (done | sel, jnp.where(sel, h, oh), jnp.where(sel, l, ol), jnp.where(sel, k, ok), cum)
 
-    for k in range(_D):  # ascending from s: digit k becomes d_k(s) + nz_k(s) + i (no carry)
+    def up(k, state):  # ascending from s: digit k = d_k(s) + [low digits != 0] + i (no carry)
+        cum = state[-1]
+        n = _left_count(sh, sl, k, p)
         i = t - cum
         h, l = _trunc(sh, sl, k + 1)
         val = _digit(sh, sl, k) + _low_nonzero(sh, sl, k).astype(jnp.int32) + i
         h, l = _put_digit(h, l, k, jnp.clip(val, 0, 7))
-        done, out_h, out_l, out_k = take(i < left[k], h, l, k, done, out_h, out_l, out_k)
-        cum = cum + left[k]
-    # middle, level p: digits above p from e, digit p = base + i
+        state = pick(state, i < n, h, l, k)
+        return state[:-1] + (cum + n,)
+
+    state = jax.lax.fori_loop(0, _D, up, (jnp.zeros(sh.shape, bool), zeros, zeros, zeros, jnp.zeros_like(t)))
+    # middle, level p: digits above p from e, digit p = base + i (p = 16 only for [0, 2^48))
+    cum = state[-1]
     i = t - cum
-    mid_h, mid_l = jnp.zeros_like(sh), jnp.zeros_like(sl)
-    n_mid = jnp.zeros_like(t)
-    for k in range(_D + 1):
-        at = p == k
-        if k < _D:
-            h, l = _trunc(eh, el, k + 1)
-            h, l = _put_digit(h, l, k, jnp.clip(base + i, 0, 7))
-        else:
-            h, l = jnp.zeros_like(sh), jnp.zeros_like(sl)
-        mid_h = jnp.where(at, h, mid_h)
-        mid_l = jnp.where(at, l, mid_l)
-        n_mid = jnp.where(at, _digit(eh, el, k) - base, n_mid)
-    done, out_h, out_l, out_k = take(i < n_mid, mid_h, mid_l, p, done, out_h, out_l, out_k)
-    cum = cum + n_mid
-    for k in reversed(range(_D)):  # descending to e: digit k = i, digits above from e
+    n_mid = _digit(eh, el, p) - base
+    h, l = _trunc(eh, el, jnp.minimum(p + 1, _D))
+    h, l = _put_digit(h, l, jnp.minimum(p, _D - 1), jnp.clip(base + i, 0, 7))
+    h = jnp.where(p >= _D, 0, h)
+    l = jnp.where(p >= _D, 0, l)
+    state = pick(state, i < n_mid, h, l, p)
+    state = state[:-1] + (cum + n_mid,)
+
+    def down(j, state):  # descending to e: digit k = i, digits above k from e
+        k = _D - 1 - j
+        cum = state[-1]
+        n = jnp.where(k < p, _digit(eh, el, k), 0)
         i = t - cum
         h, l = _trunc(eh, el, k + 1)
         h, l = _put_digit(h, l, k, jnp.clip(i, 0, 7))
-        done, out_h, out_l, out_k = take(i < right[k], h, l, k, done, out_h, out_l, out_k)
-        cum = cum + right[k]
-    return out_h, out_l, _D - out_k
+        state = pick(state, i < n, h, l, k)
+        return state[:-1] + (cum + n,)
+
+    _, oh, ol, ok, _ = jax.lax.fori_loop(0, _D, down, state)
+    return oh, ol, _D - ok
 
 
 # ----------------------------------------------------------------------------- rules
 
 
-def _combine(rule: str, a, b, wa, wb):
-    if rule == "sum":
-        return a + b
-    if rule == "max":
-        return jnp.maximum(a, b)
-    return wa * a + wb * b
+# The rule is traced (one compiled kernel serves all rules): ``mode`` is 0 sum, 1 max,
+# 2 weighted; "sum" runs as "weighted" with weights 1, which is exact in IEEE arithmetic.
+_MODE = {"sum": 0, "max": 1, "weighted": 2}
 
 
-def _single(rule: str, a, wa):
-    return wa * a if rule == "weighted" else a
+def _combine(mode, a, b, wa, wb):
+    return jnp.where(mode == 1, jnp.maximum(a, b), wa * a + wb * b)
+
+
+def _single(mode, a, wa):
+    return jnp.where(mode == 1, a, wa * a)
 
 
 def _check_rule(rule):
@@ -340,8 +348,8 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b):
     gb_s_l = jnp.where(coarser_b, gb_s_l, sa_l)
     ga_e_h = jnp.where(coarser_b, ga_e_h, ea_h)
     ga_e_l = jnp.where(coarser_b, ga_e_l, ea_l)
-    n_before = _gap_plan(gb_s_h, gb_s_l, sa_h, sa_l)[-1]
-    n_after = _gap_plan(ea_h, ea_l, ga_e_h, ga_e_l)[-1]
+    n_before = _gap_plan(gb_s_h, gb_s_l, sa_h, sa_l)
+    n_after = _gap_plan(ea_h, ea_l, ga_e_h, ga_e_l)
     count = jnp.where(valid, n_before + self_emit.astype(jnp.int32) + n_after, 0)
     return dict(
         count=count, n_before=n_before, self_emit=self_emit,
@@ -408,8 +416,8 @@ def _assemble(sides, orders, capacity: int, params, resolution, tree_depth):
     return m, total
 
 
-@functools.partial(jax.jit, static_argnames=("rule", "capacity", "do_prune"))
-def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule: str, capacity: int, do_prune: bool):
+@functools.partial(jax.jit, static_argnames=("capacity", "do_prune"))
+def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, do_prune: bool):
     le2, lt1 = _merge_ranks(m1.code, m2.code)  # #m2 <= m1_i, #m1 < m2_j
     # m2_j's lookup needs #m1 <= m2_j: add the equal-start m1 leaf.
     k = jnp.clip(lt1, 0, m1.capacity - 1)
@@ -511,11 +519,14 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
     """
     _check_pair([m1, m2], ["m1", "m2"])
     _check_rule(rule)
+    if rule != "weighted":
+        weights = (1.0, 1.0)
     w1, w2 = (jnp.asarray(w, jnp.float32) for w in weights)
+    mode = jnp.asarray(_MODE[rule], jnp.int32)
     traced = _is_traced(m1.count, m2.count)
 
     def run(cap):
-        return _fuse_pair(m1, m2, w1, w2, rule, cap, bool(prune))
+        return _fuse_pair(m1, m2, w1, w2, mode, cap, bool(prune))
 
     guess = 0 if traced else int(m1.count) + int(m2.count)
     return _finish(run, guess, capacity, traced, return_report, "fuse")
@@ -538,7 +549,7 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
         raise ValueError("maps must hold at least one OccupancyMap")
     _check_pair(maps, [f"maps[{i}]" for i in range(len(maps))])
     _check_rule(rule)
-    if weights is None:
+    if weights is None or rule != "weighted":
         weights = [1.0] * len(maps)
     if len(weights) != len(maps):
         raise ValueError(f"weights has {len(weights)} entries for {len(maps)} maps")
@@ -546,7 +557,7 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
     traced = _is_traced(*[m.count for m in maps])
 
     def run(cap):
-        return _fuse_many(tuple(maps), w, rule, cap, bool(prune))
+        return _fuse_many(tuple(maps), w, jnp.asarray(_MODE[rule], jnp.int32), cap, bool(prune))
 
     guess = 0 if traced else 2 * sum(int(m.count) for m in maps)
     return _finish(run, guess, capacity, traced, return_report, "fuse_many")
@@ -569,8 +580,8 @@ def _merge_lists(a, b):
                  for xa, xb in zip(a, b))
 
 
-@functools.partial(jax.jit, static_argnames=("rule", "capacity", "do_prune"))
-def _fuse_many(maps, w, rule: str, capacity: int, do_prune: bool):
+@functools.partial(jax.jit, static_argnames=("capacity", "do_prune"))
+def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
     m0 = maps[0]
     # 1. every map's starts and ends (each sorted) merged into one sorted boundary list;
     #    payload: map id, leaf index (-1 for an end).
@@ -612,20 +623,17 @@ def _fuse_many(maps, w, rule: str, capacity: int, do_prune: bool):
     p = m0.params
     lo_c, hi_c = p.clamp_min_log_odds, p.clamp_max_log_odds
     known = cov[0]
-    acc = jnp.where(known, vals[0] if rule != "weighted" else w[0] * vals[0], 0.0)
+    acc = jnp.where(known, _single(mode, vals[0], w[0]), 0.0)
     for k in range(1, len(maps)):
         v = vals[k]
-        if rule == "sum":
-            step = jnp.clip(jnp.where(known, acc + v, v), lo_c, hi_c)
-            acc = jnp.where(cov[k], step, jnp.clip(acc, lo_c, hi_c))
-        elif rule == "max":
-            acc = jnp.where(cov[k], jnp.where(known, jnp.maximum(acc, v), v), acc)
-        else:
-            acc = jnp.where(cov[k], acc + w[k] * v, acc)
+        summed = jnp.clip(jnp.where(known, acc + v, v), lo_c, hi_c)  # fold of fuse: clamp per map
+        other = jnp.where(known, _combine(mode, acc, v, 1.0, w[k]), _single(mode, v, w[k]))
+        new = jnp.where(mode == 0, summed, other)
+        acc = jnp.where(cov[k], new, jnp.where(mode == 0, jnp.clip(acc, lo_c, hi_c), acc))
         known = known | cov[k]
     n_known = sum(c.astype(jnp.int32) for c in cov)
     # 4. decompose the known intervals into aligned cells, laid out in order
-    n_cells = jnp.where(known, _gap_plan(bh, bl, nh, nl)[-1], 0)
+    n_cells = jnp.where(known, _gap_plan(bh, bl, nh, nl), 0)
     table = dict(count=n_cells, n_before=n_cells, self_emit=jnp.zeros_like(known),
                  gb=(bh, bl, nh, nl), ga=(bh, bl, nh, nl), self_val=acc, gap_val=acc,
                  depth=jnp.full((n_b,), _D, jnp.int32))
