@@ -582,11 +582,14 @@ def test_reader_matches_brute_force_recursive_parser():
         codes, depth = codes[keep], depth[keep]
         values = rng.normal(size=codes.size).astype(np.float32)
         body, _ = _preorder.encode_ot(codes, depth, values)
-        got = from_bytes(body.tobytes(), binary=False, resolution=0.1).leaves()
+        got = from_bytes(body.tobytes(), binary=False, resolution=0.1)
+        n = got.num_leaves
         ref = _recursive_ot(body.tobytes())
-        np.testing.assert_array_equal(got.codes, [r[0] for r in ref])
-        np.testing.assert_array_equal(got.depths, [r[1] for r in ref])
-        np.testing.assert_array_equal(got.log_odds, np.array([r[2] for r in ref], np.float32))
+        np.testing.assert_array_equal(morton.join_codes(np.asarray(got.code)[:n]),
+                                      [r[0] for r in ref])
+        np.testing.assert_array_equal(np.asarray(got.depth)[:n], [r[1] for r in ref])
+        np.testing.assert_array_equal(np.asarray(got.log_odds)[:n],
+                                      np.array([r[2] for r in ref], np.float32))
 
 
 def test_fused_bt_writer_matches_prune_then_encode():
@@ -605,22 +608,33 @@ def test_fused_bt_writer_matches_prune_then_encode():
         else:
             lo = rng.choice(np.array([-1.0, 0.0, 2.0], np.float32), size=keys.shape[0])
         codes, first = np.unique(morton.keys_to_codes(keys.astype(np.uint16)), return_index=True)
-        m = tree_prune_host(codes, lo[first])
-        lv = m.leaves()
-        if trial % 2 and np.any(lv.depths < 16):  # only coarse leaves: empty finest levels
-            keep = lv.depths < 16
-            m = from_leaves(lv.codes[keep], lv.depths[keep], lv.log_odds[keep], 0.1)
-            lv = m.leaves()
-        c, d, v = max_likelihood_prune(lv.codes, lv.depths, lv.log_odds)
+        codes, depths, lo = tree_prune_host(codes, lo[first])
+        if trial % 2 and np.any(depths < 16):  # only coarse leaves: empty finest levels
+            keep = depths < 16
+            codes, depths, lo = codes[keep], depths[keep], lo[keep]
+        m = from_leaves(codes, depths, lo, 0.1)
+        c, d, v = max_likelihood_prune(codes, depths, lo)
         body, nodes = _preorder.encode_bt(c, d.astype(np.uint8), v >= 0)
         assert to_bytes(m, binary=True) == body.tobytes()
         assert read_header_size(to_bytes(m, binary=True, header=True)) == nodes
 
 
 def tree_prune_host(codes, log_odds):
-    import octomerge_jax.tree as tree_mod
-
-    return tree_mod.prune(from_leaves(codes, np.full(codes.size, 16), log_odds, 0.1))
+    """Maximal prune (8 equal sibling leaves -> parent, bottom-up) in plain NumPy (host
+    arrays: ``OccupancyMap.leaves()`` compiles a slice per leaf count)."""
+    depths = np.full(codes.size, 16)
+    for d in range(15, -1, -1):
+        idx = np.flatnonzero(depths == d + 1)
+        parent = codes[idx] & _preorder.MASKS[d]
+        starts = np.flatnonzero(np.r_[True, parent[1:] != parent[:-1]]) if idx.size else idx
+        run = np.diff(np.r_[starts, idx.size])
+        block = idx[starts[run == 8][:, None] + np.arange(8)]
+        block = block[np.all(log_odds[block] == log_odds[block[:, :1]], axis=1)]
+        depths[block[:, 0]] = d
+        keep = np.ones(codes.size, bool)
+        keep[block[:, 1:]] = False
+        codes, depths, log_odds = codes[keep], depths[keep], log_odds[keep]
+    return codes, depths, log_odds
 
 
 def read_header_size(image: bytes) -> int:
