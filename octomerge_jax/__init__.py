@@ -8,7 +8,7 @@ fusion across depths and differentiable ICP.
 from importlib.metadata import PackageNotFoundError, version as _version
 
 from .examples import example_map
-from .io import MapFormatError, from_bytes, load, save, to_bytes
+from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
 from .tree import (
     apply_voxel_updates,
@@ -40,6 +40,7 @@ __all__ = [
     "expand",
     "from_bytes",
     "from_leaves",
+    "from_message",
     "from_voxels",
     "load",
     "lookup",
@@ -48,5 +49,6 @@ __all__ = [
     "save",
     "to_bytes",
     "to_max_likelihood",
+    "to_message_fields",
     "update_points",
 ]

@@ -149,14 +149,15 @@ class OccupancyMap:
     def leaves(self) -> Leaves:
         """The valid leaves as NumPy arrays in Morton order."""
         n = self.num_leaves
-        codes = morton.join_codes(np.asarray(self.code[:n]))
-        depths = np.asarray(self.depth[:n]).astype(np.int32)
+        # slice on the host: a device slice would compile once per leaf count
+        codes = morton.join_codes(np.asarray(self.code)[:n])
+        depths = np.asarray(self.depth)[:n].astype(np.int32)
         keys = morton.codes_to_keys(codes)
         return Leaves(
             centers=morton.keys_to_coords(keys, self.resolution, depths),
             sizes=morton.node_size(depths, self.resolution),
             depths=depths,
-            log_odds=np.asarray(self.log_odds[:n]).astype(np.float32),
+            log_odds=np.asarray(self.log_odds)[:n].astype(np.float32),
             codes=codes,
             keys=keys,
         )
@@ -166,9 +167,8 @@ class OccupancyMap:
         n = self.num_leaves
         if capacity < n:
             raise ValueError(f"capacity {capacity} is smaller than the map's {n} leaves")
-        leaves_code = np.asarray(self.code[:n])
-        return _build(leaves_code, np.asarray(self.depth[:n]), np.asarray(self.log_odds[:n]),
-                      self.resolution, self.params, capacity)
+        return _build(np.asarray(self.code)[:n], np.asarray(self.depth)[:n],
+                      np.asarray(self.log_odds)[:n], self.resolution, self.params, capacity)
 
     def __repr__(self) -> str:  # the default would print whole arrays
         try:
@@ -199,10 +199,10 @@ def _build(words, depths, log_odds, resolution, params, capacity) -> OccupancyMa
     lo = np.zeros((cap,), np.float32)
     lo[:n] = log_odds
     return OccupancyMap(
-        code=jnp.asarray(code),
-        depth=jnp.asarray(depth),
-        log_odds=jnp.asarray(lo),
-        count=jnp.asarray(n, jnp.int32),
+        code=jax.device_put(code),
+        depth=jax.device_put(depth),
+        log_odds=jax.device_put(lo),
+        count=jax.device_put(np.int32(n)),
         params=params if params is not None else OccupancyParams(),
         resolution=_check_resolution(resolution),
     )

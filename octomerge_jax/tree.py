@@ -134,11 +134,8 @@ def equal(a: OccupancyMap, b: OccupancyMap) -> bool:
     if a.resolution != b.resolution or a.num_leaves != b.num_leaves:
         return False
     n = a.num_leaves
-    return bool(
-        np.array_equal(np.asarray(a.code[:n]), np.asarray(b.code[:n]))
-        and np.array_equal(np.asarray(a.depth[:n]), np.asarray(b.depth[:n]))
-        and np.array_equal(np.asarray(a.log_odds[:n]), np.asarray(b.log_odds[:n]))
-    )
+    return all(np.array_equal(np.asarray(x)[:n], np.asarray(y)[:n])
+               for x, y in ((a.code, b.code), (a.depth, b.depth), (a.log_odds, b.log_odds)))
 
 
 # ----------------------------------------------------------------------------- expand
@@ -170,7 +167,7 @@ def expand(m: OccupancyMap, depth: int = _D, capacity: int | None = None) -> Occ
     """
     if not 0 <= int(depth) <= _D:
         raise ValueError(f"depth must lie in 0..16, got {depth}")
-    d = np.asarray(m.depth[: m.num_leaves]).astype(np.int64)
+    d = np.asarray(m.depth)[: m.num_leaves].astype(np.int64)
     needed = int(np.sum(np.left_shift(1, 3 * np.maximum(int(depth) - d, 0)).astype(np.int64)))
     if needed > (1 << 31) - 1:
         raise ValueError(f"expand to depth {depth} would create {needed} leaves (more than 2^31)")
@@ -219,8 +216,8 @@ def num_nodes(m: OccupancyMap) -> int:
     n = m.num_leaves
     if n == 0:
         return 0
-    codes = morton.join_codes(np.asarray(m.code[:n]))
-    depths = np.asarray(m.depth[:n]).astype(np.int64)
+    codes = morton.join_codes(np.asarray(m.code)[:n])
+    depths = np.asarray(m.depth)[:n].astype(np.int64)
     total = n
     for a in range(_D):
         sel = depths > a

@@ -13,7 +13,7 @@ import sys
 from ._common import CliError
 
 # Subcommand modules, in the order ``--help`` lists them.
-_COMMANDS = ["info", "convert"]
+_COMMANDS = ["merge", "batch", "demo", "info", "convert", "dump_config"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -27,7 +27,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _COMMANDS:
-        importlib.import_module(f"{__name__}.{name}").register(sub)
+        try:
+            module = importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as err:  # a subcommand whose optional dependency is missing
+            if err.name and err.name.startswith(__name__):
+                raise
+            continue
+        module.register(sub)
     return parser
 
 
