@@ -1,0 +1,214 @@
+"""Benchmark: log-odds fusion of two maps (``fuse``) and of m maps (``fuse_many`` vs a fold).
+
+Maps: a generated building (rooms of voxelised walls, floor and ceiling, free space inside;
+noisy log-odds so only part of the free space prunes), cut into two overlapping crops along x
+(~20 % overlap); the second crop is converted to maximum likelihood (clamp values), so it is
+pruned coarser than the first - the depth conflicts of thesis §5.2.3 cases 3 and 4.
+Leaf arrays are built directly in NumPy (finest voxels + a NumPy maximal prune).
+
+Anchor (issue 4): the thesis merge loop (Alg. 8) in C++ on OctoMap 1.10 on this 2-core CPU,
+real building map pairs: merge 0.10 s / 0.37 s / 1.53 s for 258k+311k / 1.1M+1.2M /
+4.4M+4.7M leaves, plus pruning 0.05 / 0.20 / 0.74 s. We compare leaves per second
+(n1 + n2) / (merge + prune) at the nearest anchor size. Target: >= 3x.
+
+Usage: ``python benchmarks/bench_fuse.py [--sizes small,medium,large] [--repeats 3]``
+Prints a table; compile (first call) is reported apart from the steady-state median
+(``block_until_ready``). Peak memory is the process peak RSS after each row.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import time
+
+import jax
+import numpy as np
+
+from octomerge_jax import fuse as F
+from octomerge_jax import map as omap
+from octomerge_jax import morton
+
+RES = 0.1
+P = omap.OccupancyParams()
+LMIN, LMAX = np.float32(P.clamp_min_log_odds), np.float32(P.clamp_max_log_odds)
+U1 = np.uint64(1)
+
+# size name -> building grid (x, y, z voxels); rows give ~0.2M / ~0.8M / ~3M leaves per crop
+SIZES = {"small": (160, 120, 40), "medium": (320, 240, 48), "large": (640, 440, 56)}
+ANCHORS = [  # (n1 + n2, merge s, prune s) of the thesis C++ loop
+    (258_000 + 311_000, 0.10, 0.05),
+    (1_100_000 + 1_200_000, 0.37, 0.20),
+    (4_400_000 + 4_700_000, 1.53, 0.74),
+]
+
+
+def _span(depth):
+    return U1 << (np.uint64(3) * (np.uint64(16) - np.asarray(depth).astype(np.uint64)))
+
+
+def numpy_prune(codes, depths, values):
+    """Maximal prune on host arrays (8 equal siblings -> parent, bottom-up, not the root)."""
+    for d in range(16, 1, -1):
+        at = np.flatnonzero(depths == d)
+        if at.size == 0:
+            continue
+        parent = codes[at] & ~(_span(d - 1) - U1)
+        vals = values[at]
+        brk = np.flatnonzero(np.diff(parent)) + 1
+        start = np.concatenate([[0], brk])
+        cnt = np.diff(np.concatenate([start, [at.size]]))
+        vmin = np.minimum.reduceat(vals, start)
+        vmax = np.maximum.reduceat(vals, start)
+        ok = (cnt == 8) & (vmin == vmax)
+        if not ok.any():
+            continue
+        grp = np.repeat(np.arange(start.size), cnt)
+        drop = at[ok[grp]]
+        keep = np.ones(codes.size, bool)
+        keep[drop] = False
+        first = at[start[ok]]
+        keep[first] = True  # the first child's row becomes the parent (same min code)
+        depths = depths.copy()
+        values = values.copy()
+        depths[first] = d - 1
+        values[first] = vmin[ok]
+        codes, depths, values = codes[keep], depths[keep], values[keep]
+    return codes, depths, values
+
+
+def building(shape, rng):
+    """Finest voxels of a building: keys (n, 3) and two independent noisy log-odds fields."""
+    X, Y, Z = shape
+    x, y, z = np.meshgrid(np.arange(X), np.arange(Y), np.arange(Z), indexing="ij")
+    wall = (x % 40 == 0) | (y % 40 == 0) | (x == X - 1) | (y == Y - 1) | (z == 0) | (z == Z - 1)
+    door = ((x % 40 == 0) & (y % 40 > 15) & (y % 40 < 24) & (z < 22)) | \
+           ((y % 40 == 0) & (x % 40 > 15) & (x % 40 < 24) & (z < 22))
+    occ = (wall & ~door).ravel()
+    keys = np.stack([x.ravel(), y.ravel(), z.ravel()], -1).astype(np.int64) + 32768 - 64
+    fields = []
+    for _ in range(2):
+        r = rng.random(occ.size)
+        v = np.where(occ, np.where(r < 0.7, LMAX, np.float32(0.85) * (1 + (r * 10).astype(np.int32) % 3)),
+                     np.where(r < 0.85, LMIN, np.float32(-0.4) * (1 + (r * 10).astype(np.int32) % 4)))
+        fields.append(np.clip(v.astype(np.float32), LMIN, LMAX))
+    return keys.astype(np.uint16), fields
+
+
+def crop_map(keys, values, mask, ml=False):
+    codes = morton.keys_to_codes(keys[mask])
+    v = values[mask]
+    if ml:
+        v = np.where(v >= 0, LMAX, LMIN).astype(np.float32)
+    order = np.argsort(codes)
+    c, d, v = numpy_prune(codes[order], np.full(codes.size, 16, np.int64), v[order])
+    return omap.from_leaves(c, d, v, RES, check=False)
+
+
+def make_pair(shape, seed=0):
+    rng = np.random.default_rng(seed)
+    keys, (f1, f2) = building(shape, rng)
+    x = keys[:, 0].astype(np.int64) - keys[:, 0].min()
+    X = shape[0]
+    m1 = crop_map(keys, f1, x < int(0.6 * X))
+    m2 = crop_map(keys, f2, x >= int(0.4 * X), ml=True)
+    return m1, m2
+
+
+def timed(fn, repeats):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn())
+    first = time.perf_counter() - t0
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        ts.append(time.perf_counter() - t0)
+    return first, statistics.median(ts)
+
+
+def peak_rss_gb():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+
+
+def anchor_rate(n):
+    n_a, merge, prune = min(ANCHORS, key=lambda a: abs(np.log(a[0] / n)))
+    return n_a / (merge + prune), n_a
+
+
+def bench_pairs(sizes, repeats):
+    print("\n## fuse(m1, m2): two overlapping crops, m2 max-likelihood (coarser pruned)")
+    hdr = (f"{'size':>7} {'n1':>9} {'n2':>9} {'refined':>9} {'out':>9} {'cap':>9} "
+           f"{'compile s':>9} {'merge s':>8} {'+prune s':>8} {'Mleaf/s':>8} {'anchor':>12} "
+           f"{'x anchor':>8} {'peakGB':>6}")
+    print(hdr)
+    for name in sizes:
+        m1, m2 = make_pair(SIZES[name])
+        _, rep = F.fuse(m1, m2, return_report=True)
+        cap = rep.capacity
+        first, merge = timed(lambda: F.fuse(m1, m2, capacity=cap, prune=False).code, repeats)
+        first_p, total = timed(lambda: F.fuse(m1, m2, capacity=cap).code, repeats)
+        n = m1.num_leaves + m2.num_leaves
+        rate = n / total
+        a_rate, a_n = anchor_rate(n)
+        print(f"{name:>7} {m1.num_leaves:>9} {m2.num_leaves:>9} {int(rep.refined_cells):>9} "
+              f"{int(rep.leaves_out):>9} {cap:>9} {first_p - total:>9.2f} {merge:>8.3f} "
+              f"{total - merge:>8.3f} {rate / 1e6:>8.2f} {f'{a_rate / 1e6:.2f}@{a_n / 1e6:.1f}M':>12} "
+              f"{rate / a_rate:>8.2f} {peak_rss_gb():>6.2f}", flush=True)
+
+
+def bench_many(shape, ms, repeats):
+    print(f"\n## fuse_many vs fold of fuse (sum), m crops of a {shape} building sliding along x")
+    print(f"{'m':>3} {'leaves':>9} {'fold s':>8} {'many s':>8} {'fold/many':>9} "
+          f"{'compile fold':>12} {'compile many':>12} {'equal':>6}")
+    rng = np.random.default_rng(1)
+    keys, (f1, f2) = building(shape, rng)
+    x = keys[:, 0].astype(np.int64) - keys[:, 0].min()
+    X = shape[0]
+    for m in ms:
+        width = X / (0.7 * m + 0.3)
+        maps = []
+        for k in range(m):
+            lo = int(k * 0.7 * width)
+            vals = f1 if k % 2 == 0 else f2
+            maps.append(crop_map(keys, vals, (x >= lo) & (x < lo + int(width)), ml=(k % 2 == 1)))
+        # plan the fold's capacities once (host), then time the steady fold with them
+        caps, acc = [], maps[0]
+        for mk in maps[1:]:
+            acc, rep = F.fuse(acc, mk, return_report=True)
+            caps.append(rep.capacity)
+        fold_out = acc
+
+        def fold():
+            a = maps[0]
+            for mk, c in zip(maps[1:], caps):
+                a = F.fuse(a, mk, capacity=c)
+            return a.code
+
+        many_out, rep = F.fuse_many(maps, return_report=True)
+        cap = rep.capacity
+        cf, tf = timed(fold, repeats)
+        cm, tm = timed(lambda: F.fuse_many(maps, capacity=cap).code, repeats)
+        n = fold_out.num_leaves
+        same = (n == many_out.num_leaves and
+                np.array_equal(np.asarray(fold_out.code[:n]), np.asarray(many_out.code[:n])) and
+                np.array_equal(np.asarray(fold_out.log_odds[:n]), np.asarray(many_out.log_odds[:n])))
+        print(f"{m:>3} {sum(mm.num_leaves for mm in maps):>9} {tf:>8.3f} {tm:>8.3f} {tf / tm:>9.2f} "
+              f"{cf - tf:>12.2f} {cm - tm:>12.2f} {str(same):>6}", flush=True)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="small,medium,large")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--many", default="2,4,8", help="m values for fuse_many vs fold ('' to skip)")
+    args = ap.parse_args()
+    print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}")
+    bench_pairs([s for s in args.sizes.split(",") if s], args.repeats)
+    if args.many:
+        bench_many(SIZES["small"], [int(m) for m in args.many.split(",")], args.repeats)
+
+
+if __name__ == "__main__":
+    main()
