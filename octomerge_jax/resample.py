@@ -25,12 +25,14 @@ at the finest resolution (A.2 scans all of it). Instead, on the host, we list th
 destination bricks its image can touch (a brick-level bitmap). A jitted ``lax.scan`` then
 walks the destination bricks in fixed-size chunks. For each destination brick the inverse
 image of its 512 voxel centres plus interpolation neighbours lies inside a 3x3x3 window of
-source bricks (image width <= 7 sqrt(3) + 1 < 16 voxels), which are looked up once per brick
-(``searchsorted`` on the leaf codes for whole-brick leaves, on a dense brick table for bricks
-holding finer leaves); the 8 x 512 neighbour lookups are then plain array indexing. Each brick
-is pruned inside itself (levels 16 -> 13) before its leaves are appended to the output, so
-peak memory is the source, its dense brick table and the (brick-pruned) output; the final
-maximal prune is ``tree.prune``.
+source bricks (image width <= 7 sqrt(3) + 1 < 16 voxels). Each window brick costs one
+``searchsorted`` on the leaf codes and yields a row of a brick-indexed table of the source
+(one dense 512-value row per brick holding leaves finer than a brick, one constant row per
+distinct value of whole-brick leaves); the 8 x 512 neighbour reads are then plain indexing.
+Each brick is pruned inside itself (levels 16 -> 13) before its leaves are appended to the
+output; the final maximal prune only has to merge whole-brick leaves (``tree.prune`` on that
+subset, merged back by code). Peak memory: the source, its dense brick table (2 KiB per
+brick with fine leaves), the brick-pruned output and one chunk of work.
 """
 
 from __future__ import annotations
@@ -642,8 +644,8 @@ def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
         (unknown neighbours weigh as probability 0, as Appendix A.2; bugs fixed).
       space: interpolate in ``"probability"`` (thesis) or ``"log_odds"``; ``"thesis"``
         requires ``"probability"``.
-      chunk_bricks: destination bricks (8^3 voxels) per scan step (static; memory per step is
-        about ``chunk_bricks * 512 * 8 * 40`` bytes).
+      chunk_bricks: destination bricks (8^3 voxels) per scan step (static; a step's work
+        arrays take roughly ``chunk_bricks * 512 * 8 * 16`` bytes).
       out_capacity: static output capacity before the final prune; default a power-of-two
         guess, grown and re-run if it overflows.
 
