@@ -13,7 +13,7 @@ import sys
 from ._common import CliError
 
 # Subcommand modules, in the order ``--help`` lists them.
-_COMMANDS = ["merge", "batch", "demo", "info", "convert", "dump_config"]
+_COMMANDS = ["merge", "batch", "demo", "info", "convert", "build", "export", "dump_config"]
 
 
 def build_parser() -> argparse.ArgumentParser:
