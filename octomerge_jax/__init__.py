@@ -10,6 +10,7 @@ from importlib.metadata import PackageNotFoundError, version as _version
 from .examples import example_map
 from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
+from .resample import sample, transform_map, transformed_bounds
 from .tree import (
     apply_voxel_updates,
     clamp,
@@ -46,9 +47,12 @@ __all__ = [
     "lookup",
     "num_nodes",
     "prune",
+    "sample",
     "save",
     "to_bytes",
     "to_max_likelihood",
     "to_message_fields",
+    "transform_map",
+    "transformed_bounds",
     "update_points",
 ]
