@@ -2,8 +2,9 @@
 overlap extraction, jitted/differentiable point-to-point ICP, rendezvous initial estimates,
 error metrics and rigid-transform helpers."""
 
-from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
-                  pad_points, stage_distances)
+from . import icp  # a callable module: registration.icp(...) runs ICP, registration.icp.X reaches X
+from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp_multi, icp_padded, pad_points,
+                  stage_distances)
 from .metrics import rotation_angle_error, rotation_error, translation_distance, translation_error
 from .neighbors import HashGrid, any_within, build_grid, build_grids, nearest
 from .overlap import Overlap, overlap

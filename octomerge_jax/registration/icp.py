@@ -45,6 +45,8 @@ Status codes (``IcpResult.status``): 0 converged, 1 max_iterations reached, 2 to
 from __future__ import annotations
 
 import dataclasses
+import sys
+import types
 from functools import partial
 
 import jax
@@ -228,19 +230,17 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
 
     def correspond(T, stage):
         p = rigid.transform_points(T, src_sg)
-        d2, idx = neighbors.nearest(grids, p, stage)
+        d2, idx, match = neighbors.nearest_with_points(grids, p, stage)
         dmax = dists[stage]
         w = valid & (idx >= 0) & (d2 <= dmax * dmax)
-        return d2, jnp.maximum(idx, 0), w
-
-    tgt_sg = jax.lax.stop_gradient(target)
+        return d2, jnp.maximum(idx, 0), w, match
 
     def body(state):
-        T, stage, it, done, status, _, _ = state
-        _, idx, w = correspond(T, stage)
+        T, stage, it, done, status = state[:5]
+        _, idx, w, match = correspond(T, stage)
         n_in = jnp.sum(w)
         enough = n_in >= min_inliers
-        T_new = jnp.where(enough, _kabsch(src_sg, tgt_sg[idx], w), T)
+        T_new = jnp.where(enough, _kabsch(src_sg, jnp.where(w[:, None], match, 0.0), w), T)
         change = jnp.sum(jnp.abs(T_new - T))
         last = stage == num_stages - 1
         small = change < jnp.where(last, final_epsilon, epsilon)
@@ -248,23 +248,28 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
         new_status = jnp.where(~enough, STATUS_TOO_FEW_INLIERS, STATUS_CONVERGED)
         stage = jnp.where(small & ~last, stage + 1, stage)
         return (T_new, stage, it + 1, done_now, jnp.where(done_now, new_status, status).astype(jnp.int32),
-                idx, w)
+                idx, w, match)
 
     def cond(state):
         return (~state[3]) & (state[2] < max_iterations)
 
     init = (T0, jnp.int32(0), jnp.int32(0), jnp.bool_(False), jnp.int32(STATUS_MAX_ITERATIONS),
-            jnp.zeros((n,), jnp.int32), jnp.zeros((n,), bool))
-    T, stage, it, done, status, idx, w = jax.lax.while_loop(cond, body, init)
+            jnp.zeros((n,), jnp.int32), jnp.zeros((n,), bool), jnp.zeros((n, 3), jnp.float32))
+    T, stage, it, done, status, idx, w, match = jax.lax.while_loop(cond, body, init)
     status = jnp.where(done, status, STATUS_MAX_ITERATIONS).astype(jnp.int32)
 
     # final report at the returned transform and final distance
-    d2, _, w_fin = correspond(T, stage)
+    d2, _, w_fin, _ = correspond(T, stage)
     n_in = jnp.sum(w_fin).astype(jnp.int32)
     rmse = jnp.sqrt(jnp.sum(jnp.where(w_fin, d2, 0.0)) / jnp.maximum(n_in, 1).astype(jnp.float32))
     n_valid = jnp.maximum(source_count, 1).astype(jnp.float32)
 
-    T_out = _implicit_step(T, jnp.asarray(source, jnp.float32), jnp.asarray(target, jnp.float32)[idx], w)
+    # y has the value of the matched coordinates (T is exactly their least-squares solution)
+    # and the derivative of the matched target points (exact at the finest stage; on a
+    # coarse centroid stage, reached only via max_iterations, it is that of one member point)
+    y_t = jnp.asarray(target, jnp.float32)[idx]
+    y = jax.lax.stop_gradient(match) + (y_t - jax.lax.stop_gradient(y_t))
+    T_out = _implicit_step(T, jnp.asarray(source, jnp.float32), y, w)
     return IcpResult(
         T_target_source=T_out,
         converged=status == STATUS_CONVERGED,
@@ -280,8 +285,12 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
 
 
 def _build(target, target_count, dists, table_sizes, cell_capacity):
+    # coarse stages match against the voxel-grid centroids at d/2 (the thesis code's VoxelGrid
+    # downsampling); the last stage against the target points themselves
+    cl = (True,) * (len(table_sizes) - 1) + (False,)
     return neighbors.build_grids(jax.lax.stop_gradient(jnp.asarray(target, jnp.float32)), target_count,
-                                 dists, table_sizes=table_sizes, cell_capacity=cell_capacity)
+                                 dists, table_sizes=table_sizes, cell_capacity=cell_capacity,
+                                 centroid_levels=cl)
 
 
 @partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes"))
@@ -470,3 +479,14 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
         out = IcpMultiResult(_invert_result(out.best), _invert_result(out.candidates), out.best_index,
                              out.scores, rigid.inverse(out.hypotheses))
     return out
+
+
+class _CallableModule(types.ModuleType):
+    """``registration.icp`` is both this module (``registration.icp.icp_padded``, ...) and
+    the function (``registration.icp(source, target, T)``): calling the module calls ``icp``."""
+
+    def __call__(self, *args, **kwargs):
+        return icp(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

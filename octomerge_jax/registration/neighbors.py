@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["HashGrid", "build_grid", "build_grids", "nearest", "any_within", "grid_table_size",
+__all__ = ["HashGrid", "build_grid", "build_grids", "nearest", "nearest_with_points", "any_within", "grid_table_size",
            "level_table_sizes"]
 
 _FAR = 1.0e7  # coordinate of empty slots [m]: farther than anything real, finite squares
@@ -116,14 +116,15 @@ def _bucket(cells, mask, origin, dims, dense):
     return jnp.where(dense, jnp.where(inside, lin, mask + 1), _hash(cells, mask))
 
 
-def _build_level(points, count, cell_size, table_size: int, cell_capacity: int):
+def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, centroids: bool):
     points = jnp.asarray(points, jnp.float32)
     n = points.shape[0]
     cell_size = jnp.asarray(cell_size, jnp.float32)
     rows = jnp.arange(n, dtype=jnp.int32)
     valid = (rows < count) & jnp.all(jnp.isfinite(points), axis=-1)
     safe = jnp.where(valid[:, None], points, 0.0)
-    cells = _cells(safe, cell_size)
+    sub = _cells(safe, cell_size * 0.5)  # half-size sub-cells (for centroid levels)
+    cells = jnp.right_shift(sub, 1) if centroids else _cells(safe, cell_size)
     big = jnp.iinfo(jnp.int32).max
     origin = jnp.min(jnp.where(valid[:, None], cells, big), axis=0)
     top = jnp.max(jnp.where(valid[:, None], cells, -big), axis=0)
@@ -132,28 +133,55 @@ def _build_level(points, count, cell_size, table_size: int, cell_capacity: int):
     dense = jnp.prod(dims.astype(jnp.float32)) <= table_size
     mask = jnp.int32(table_size - 1)
     bucket = jnp.where(valid, _bucket(cells, mask, origin, dims, dense), table_size)
-    # pseudo-random tie-break so that full buckets keep a spatially uniform subset
-    rnd = ((rows.astype(jnp.uint32) * np.uint32(2654435761)) >> 1).astype(jnp.int32)
-    sb, _, order = jax.lax.sort((bucket, rnd, rows), num_keys=2)
-    is_start = jnp.concatenate([jnp.ones((1,), bool), sb[1:] != sb[:-1]])
-    start = jax.lax.cummax(jnp.where(is_start, rows, 0), axis=0)
-    rank = rows - start
-    keep = (sb < table_size) & (rank < cell_capacity)
+    if centroids:
+        # one entry per occupied half-size sub-cell: its centroid (a voxel-grid downsample at
+        # cell/2, as PCL's VoxelGrid in the thesis code); a cell has at most 8 of them
+        cell_id = _hash(cells, jnp.int32(0x7FFFFFFF))  # separates colliding cells of a bucket
+        octant = (sub[:, 0] & 1) | ((sub[:, 1] & 1) << 1) | ((sub[:, 2] & 1) << 2)
+        sb, sc, so, order = jax.lax.sort((bucket, cell_id, octant, rows), num_keys=3)
+        seg_start = jnp.concatenate([jnp.ones((1,), bool),
+                                     (sb[1:] != sb[:-1]) | (sc[1:] != sc[:-1]) | (so[1:] != so[:-1])])
+        seg = jnp.cumsum(seg_start.astype(jnp.int32)) - 1
+        sums = jax.ops.segment_sum(safe[order], seg, num_segments=n)
+        cnt = jax.ops.segment_sum(jnp.ones((n,), jnp.float32), seg, num_segments=n)
+        value = (sums / jnp.maximum(cnt, 1.0)[:, None])[seg]
+        b_start = jnp.concatenate([jnp.ones((1,), bool), sb[1:] != sb[:-1]])
+        first = jax.lax.cummax(jnp.where(b_start, rows, 0), axis=0)
+        rank = seg - seg[first]
+        entry = seg_start
+    else:
+        # pseudo-random tie-break so that full buckets keep a spatially uniform subset
+        rnd = ((rows.astype(jnp.uint32) * np.uint32(2654435761)) >> 1).astype(jnp.int32)
+        sb, _, order = jax.lax.sort((bucket, rnd, rows), num_keys=2)
+        value = safe[order]
+        is_start = jnp.concatenate([jnp.ones((1,), bool), sb[1:] != sb[:-1]])
+        rank = rows - jax.lax.cummax(jnp.where(is_start, rows, 0), axis=0)
+        entry = jnp.ones((n,), bool)
+    keep = entry & (sb < table_size) & (rank < cell_capacity)
     r = jnp.where(keep, sb, table_size)
     k = jnp.where(keep, rank, 0)
     xyz = jnp.full((3, table_size + 1, cell_capacity), _FAR, jnp.float32)
-    xyz = xyz.at[:, r, k].set(safe[order].T).at[:, table_size].set(_FAR)
+    xyz = xyz.at[:, r, k].set(value.T).at[:, table_size].set(_FAR)
     index = jnp.full((table_size + 1, cell_capacity), -1, jnp.int32)
     index = index.at[r, k].set(order).at[table_size].set(-1)
-    overflow = jnp.sum((sb < table_size) & (rank >= cell_capacity)).astype(jnp.int32)
+    overflow = jnp.sum(entry & (sb < table_size) & (rank >= cell_capacity)).astype(jnp.int32)
     return xyz, index, overflow, origin, dims, dense
 
 
-def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 8) -> HashGrid:
+def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 8,
+                centroid_levels=None) -> HashGrid:
     """Bin ``points (n, 3)`` [m] (rows ``>= count`` are padding; non-finite rows are ignored)
     into one hashed grid per entry of ``cell_sizes (L,)`` [m] (traced). ``table_sizes``
     (static tuple of powers of two, one per level, e.g. ``level_table_sizes``) and
-    ``cell_capacity`` are static. Jittable and vmappable."""
+    ``cell_capacity`` are static. Jittable and vmappable.
+
+    ``centroid_levels`` (static tuple of bools, default all False): levels that store, instead
+    of the points, the centroids of the occupied half-size sub-cells (a voxel-grid downsample
+    at ``cell_size / 2``, at most 8 per cell, so ``cell_capacity = 8`` never overflows except
+    on hash collisions). ICP uses this for its coarse stages: exact nearest *centroid* search
+    instead of a random subset of crowded cells. ``index`` then names one point of the
+    sub-cell.
+    """
     table_sizes = tuple(int(t) for t in np.atleast_1d(table_sizes))
     for t in table_sizes:
         if t < 1 or t & (t - 1):
@@ -161,15 +189,20 @@ def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 
     sizes = jnp.atleast_1d(jnp.asarray(cell_sizes, jnp.float32))
     if sizes.shape[0] != len(table_sizes):
         raise ValueError(f"{sizes.shape[0]} cell sizes but {len(table_sizes)} table sizes")
-    return _build_grids_jit(points, count, sizes, table_sizes=table_sizes, cell_capacity=int(cell_capacity))
+    cl = (False,) * len(table_sizes) if centroid_levels is None else tuple(bool(c) for c in centroid_levels)
+    if len(cl) != len(table_sizes):
+        raise ValueError(f"centroid_levels needs {len(table_sizes)} entries, got {len(cl)}")
+    return _build_grids_jit(points, count, sizes, table_sizes=table_sizes, cell_capacity=int(cell_capacity),
+                            centroid_levels=cl)
 
 
-@partial(jax.jit, static_argnames=("table_sizes", "cell_capacity"))
-def _build_grids_jit(points, count, sizes, *, table_sizes, cell_capacity):
+@partial(jax.jit, static_argnames=("table_sizes", "cell_capacity", "centroid_levels"))
+def _build_grids_jit(points, count, sizes, *, table_sizes, cell_capacity, centroid_levels):
     xyzs, idxs, ovs, bases, boxes = [], [], [], [], []
     base = 0
     for l, t in enumerate(table_sizes):
-        xyz, index, ov, origin, dims, dense = _build_level(points, count, sizes[l], t, cell_capacity)
+        xyz, index, ov, origin, dims, dense = _build_level(points, count, sizes[l], t, cell_capacity,
+                                                           centroid_levels[l])
         xyzs.append(xyz), idxs.append(index), ovs.append(ov), bases.append(base)
         boxes.append((origin, dims, dense))
         base += t + 1
@@ -211,7 +244,8 @@ def _nearest_block(xyz, index, base, mask, origin, dims, dense, h, q):
     row = jnp.take_along_axis(rows, (j // k)[:, None], axis=-1)[:, 0]
     idx = index[row, j % k]
     found = (idx >= 0) & finite
-    return jnp.where(found, best, jnp.inf), jnp.where(found, idx, -1)
+    match = jnp.stack([xyz[a][row, j % k] for a in range(3)], -1)
+    return jnp.where(found, best, jnp.inf), jnp.where(found, idx, -1), match
 
 
 @jax.jit
@@ -221,8 +255,14 @@ def nearest(grid: HashGrid, queries, level=0):
     ``level`` selects the grid level (traced int). Returns ``(dist2 (n,) float32 [m^2],
     index (n,) int32)``; ``index == -1`` and ``dist2 = inf`` when the 27 cells are empty.
     Exact for every point within ``cell_size`` of the query when ``overflow[level] == 0``.
-    Queries are processed in blocks of 2048 to bound memory.
     """
+    d2, idx, _ = nearest_with_points(grid, queries, level)
+    return d2, idx
+
+
+def nearest_with_points(grid: HashGrid, queries, level=0):
+    """As ``nearest``, plus the matched coordinates ``(n, 3)`` (the stored point, or the
+    sub-cell centroid on a centroid level). Queries are processed in blocks of 2048."""
     level = jnp.asarray(level, jnp.int32)
     base, mask, h = grid.base[level], grid.mask[level], grid.cell_size[level]
     origin, dims, dense = grid.origin[level], grid.dims[level], grid.dense[level]
@@ -231,8 +271,8 @@ def nearest(grid: HashGrid, queries, level=0):
     f = lambda qb: _nearest_block(grid.xyz, grid.index, base, mask, origin, dims, dense, h, qb)
     if n <= _CHUNK or n % _CHUNK:
         return f(q)
-    d2, idx = jax.lax.map(f, q.reshape(n // _CHUNK, _CHUNK, 3))
-    return d2.reshape(n), idx.reshape(n)
+    d2, idx, match = jax.lax.map(f, q.reshape(n // _CHUNK, _CHUNK, 3))
+    return d2.reshape(n), idx.reshape(n), match.reshape(n, 3)
 
 
 @jax.jit

@@ -1,0 +1,168 @@
+"""ICP (Alg. 3): recovery of known transforms, gradients vs finite differences, vmap, no
+recompilation, multi-hypothesis recovery of large yaw errors, small_gicp as reference."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from octomerge_jax.registration import icp as icp_mod
+from octomerge_jax.registration import metrics, rigid
+from octomerge_jax.registration._testing import scene_pair, xyz_rpy64
+
+RES = 0.4
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return scene_pair(RES)
+
+
+def _errors(T, T_true):
+    return float(metrics.rotation_angle_error(T, T_true)), float(metrics.translation_distance(T, T_true))
+
+
+def _moved(points, T_src_tgt):
+    """points of the target frame expressed in the source frame (float64)."""
+    return points @ T_src_tgt[:3, :3].T + T_src_tgt[:3, 3]
+
+
+def test_recovers_a_known_transform_exactly_without_noise(scene):
+    p1, _, _ = scene
+    T_true = xyz_rpy64(0.4, -0.3, 0.1, 0.03, -0.02, 0.15)  # T_target_source
+    src = _moved(p1[::2], np.linalg.inv(T_true))
+    r = icp_mod.icp(src, p1, np.eye(4), resolution=RES)
+    assert int(r.status) == icp_mod.STATUS_CONVERGED and bool(r.converged)
+    rot, tr = _errors(r.T_target_source, T_true)
+    assert rot < 1e-4 and tr < 1e-4
+    assert int(r.num_inliers) == len(src) and float(r.rmse) < 1e-4
+    assert int(r.grid_overflow) == 0 and not bool(r.swapped)
+
+
+def test_noise_level_accuracy_and_model_swap(scene):
+    p1, _, _ = scene
+    rng = np.random.default_rng(0)
+    T_true = xyz_rpy64(-0.3, 0.2, 0.0, 0.0, 0.0, -0.12)
+    sigma = 0.02
+    src = _moved(p1, np.linalg.inv(T_true)) + rng.normal(0, sigma, p1.shape)
+    tgt = p1[rng.random(len(p1)) < 0.6]  # smaller target: ICP swaps and inverts
+    r = icp_mod.icp(src, tgt, np.eye(4), resolution=RES)
+    assert bool(r.swapped)
+    rot, tr = _errors(r.T_target_source, T_true)
+    assert rot < 2e-3 and tr < sigma  # within the noise level
+    assert float(r.rmse) < 3 * sigma
+
+
+def test_status_instead_of_exceptions_and_host_errors(scene):
+    p1, _, _ = scene
+    far = p1 + 100.0
+    r = icp_mod.icp(far, p1, np.eye(4), resolution=RES)
+    assert int(r.status) == icp_mod.STATUS_TOO_FEW_INLIERS and not bool(r.converged)
+    np.testing.assert_allclose(np.asarray(r.T_target_source), np.eye(4), atol=1e-6)
+    r = icp_mod.icp(p1 + 0.05, p1, np.eye(4), resolution=RES, max_iterations=1)
+    assert int(r.status) == icp_mod.STATUS_MAX_ITERATIONS and int(r.num_iterations) == 1
+    with pytest.raises(ValueError, match="T_target_source_init"):
+        icp_mod.icp(p1, p1, np.eye(3), resolution=RES)
+    with pytest.raises(ValueError, match="source: contains non-finite"):
+        icp_mod.icp(np.full((5, 3), np.nan), p1, np.eye(4), resolution=RES)
+    with pytest.raises(ValueError, match="min_correspondence_distance"):
+        icp_mod.icp(p1, p1, np.eye(4), resolution=RES, min_correspondence_distance=100.0)
+
+
+def test_vmap_over_pairs_matches_single_runs_and_does_not_recompile(scene):
+    p1, _, _ = scene
+    rng = np.random.default_rng(1)
+    truths = [xyz_rpy64(0.2, 0.1, 0.0, 0.0, 0.0, 0.1), xyz_rpy64(-0.1, 0.3, 0.05, 0.02, 0.0, -0.08)]
+    cap_s, cap_t = 2048, 4096
+    S, SC, Tg, TC = [], [], [], []
+    for T in truths:
+        sub = p1[rng.random(len(p1)) < 0.5]
+        s, sc = icp_mod.pad_points(_moved(sub, np.linalg.inv(T)), cap_s)
+        t, tc = icp_mod.pad_points(p1, cap_t)
+        S.append(s), SC.append(sc), Tg.append(t), TC.append(tc)
+    dists = icp_mod.stage_distances(RES)
+    run = lambda s, sc, t, tc: icp_mod.icp_padded(s, sc, t, tc, jnp.eye(4), dists, RES / 60)
+    batched = jax.jit(jax.vmap(run))(jnp.stack(S), jnp.stack(SC), jnp.stack(Tg), jnp.stack(TC))
+    before = icp_mod._icp_padded_jit._cache_size()
+    for i, T in enumerate(truths):
+        single = run(S[i], SC[i], Tg[i], TC[i])
+        np.testing.assert_allclose(np.asarray(batched.T_target_source[i]), np.asarray(single.T_target_source),
+                                   atol=1e-5)
+        rot, tr = _errors(single.T_target_source, T)
+        assert rot < 1e-4 and tr < 1e-4
+    # the second single call (other data, same bucket) reused the first compilation
+    assert icp_mod._icp_padded_jit._cache_size() == before + 1
+
+
+def test_gradients_match_central_finite_differences(scene):
+    p1, _, _ = scene
+    rng = np.random.default_rng(2)
+    tgt = jnp.asarray(p1[:600], jnp.float32)
+    T_true = xyz_rpy64(0.1, -0.05, 0.0, 0.0, 0.0, 0.05)
+    # every source point has its partner ~0.02 m away and others >= 0.35 m away, so small
+    # perturbations do not change the correspondences (the derivative is then well defined)
+    src = jnp.asarray(_moved(p1[:600], np.linalg.inv(T_true)) + rng.normal(0, 0.01, (600, 3)), jnp.float32)
+    W = jnp.asarray(rng.normal(size=(4, 4)), jnp.float32)
+    kw = dict(resolution=RES, source_count=600, target_count=600)
+
+    def f(s, t, T0):
+        return jnp.sum(W * icp_mod.icp(s, t, T0, **kw).T_target_source)
+
+    T0 = jnp.asarray(xyz_rpy64(0.0, 0.0, 0.0, 0.0, 0.0, 0.02), jnp.float32)
+    gs, gt, gT = jax.grad(f, argnums=(0, 1, 2))(src, tgt, T0)
+    for g in (gs, gt, gT):
+        assert np.all(np.isfinite(np.asarray(g)))
+    assert float(jnp.max(jnp.abs(gT))) == 0.0  # the fixed point does not move with the start
+
+    def directional(x_index, V, eps):
+        args = [src, tgt, T0]
+        plus, minus = list(args), list(args)
+        plus[x_index] = args[x_index] + eps * V
+        minus[x_index] = args[x_index] - eps * V
+        return (float(f(*plus)) - float(f(*minus))) / (2 * eps)
+
+    for x_index, g in ((0, gs), (1, gt)):
+        V = jnp.asarray(rng.normal(size=g.shape), jnp.float32)
+        fd = directional(x_index, V, 1e-3)
+        an = float(jnp.sum(g * V))
+        assert an == pytest.approx(fd, rel=0.03, abs=1e-3)
+    D = jnp.asarray(xyz_rpy64(0.01, -0.01, 0.005, 0.002, -0.002, 0.01), jnp.float32)
+    fd_T = (float(f(src, tgt, T0 @ D)) - float(f(src, tgt, T0 @ rigid.inverse(D)))) / 2
+    assert fd_T == pytest.approx(0.0, abs=1e-4)
+
+
+@pytest.mark.parametrize("yaw_error", [0.5, 1.7])
+def test_icp_multi_recovers_large_yaw_errors(scene, yaw_error):
+    """Table 7.1 row 1 (0.5 rad) and Table 7.2 row 7 (1.7 rad) failed in the thesis."""
+    p1, p2, T12 = scene
+    T_init = xyz_rpy64(0.0, 0.0, 0.0, 0.0, 0.0, yaw_error) @ T12
+    single = icp_mod.icp(p2, p1, T_init, resolution=RES)
+    multi = icp_mod.icp_multi(p2, p1, T_init, resolution=RES)
+    assert multi.hypotheses.shape == (16, 4, 4) and multi.scores.shape == (16,)
+    rot, tr = _errors(multi.best.T_target_source, T12)
+    assert rot < 0.05 and tr < 0.3
+    assert float(metrics.rotation_error(multi.best.T_target_source, T12)) < 0.25  # thesis "coherent"
+    assert int(multi.best.num_inliers) >= int(single.num_inliers)
+    np.testing.assert_allclose(np.asarray(multi.candidates.T_target_source[multi.best_index]),
+                               np.asarray(multi.best.T_target_source))
+
+
+def test_no_worse_than_small_gicp_on_exact_lattice_grid(scene):
+    """Same inputs, Table 7.1-like initial errors (yaw, translation, roll/pitch)."""
+    small_gicp = pytest.importorskip("small_gicp")
+    p1, _, _ = scene
+    T_true = xyz_rpy64(0.5, -0.2, 0.0, 0.0, 0.0, np.pi / 4)
+    src = _moved(p1, np.linalg.inv(T_true))
+    grid = [(0, 0, 0, 0, 0, 0.1), (0, 0, 0, 0, 0, 0.2), (1, 0, 0, 0, 0, 0), (1, 1, 0, 0, 0, 0.05),
+            (0, 0, 0, 0.1, 0, 0), (0, 0, 0, 0, 0.1, 0)]
+    for e in grid:
+        T_init = xyz_rpy64(*e) @ T_true
+        ours = icp_mod.icp(src, p1, T_init, resolution=RES)
+        r = small_gicp.align(p1, src, T_init, registration_type="ICP", downsampling_resolution=1e-3,
+                             max_correspondence_distance=10 * RES, max_iterations=50)
+        r = small_gicp.align(p1, src, r.T_target_source, registration_type="ICP",
+                             downsampling_resolution=1e-3, max_correspondence_distance=2 * RES,
+                             max_iterations=50)
+        o_rot, o_tr = _errors(ours.T_target_source, T_true)
+        s_rot, s_tr = _errors(r.T_target_source, T_true)
+        assert o_rot <= s_rot + 1e-3 and o_tr <= s_tr + 1e-3, (e, o_rot, o_tr, s_rot, s_tr)
