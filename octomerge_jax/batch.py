@@ -47,6 +47,7 @@ from .pipeline import (
     _epsilons,
     _icp_dict,
     _icp_kwargs,
+    _icp_modules,
     _select_overlap,
     _transform_and_fuse,
     check_resolutions,
@@ -99,8 +100,7 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
     ``merge`` pair by pair (same kernels); a bad pair never stops the batch. ``refine="multi"``
     runs its hypotheses batched per pair (already one ``vmap``).
     """
-    from .registration import icp as icp_mod
-    from .registration import neighbors
+    icp_mod, neighbors = _icp_modules()
 
     cfg = MergeConfig() if config is None else config
     rc = cfg.registration

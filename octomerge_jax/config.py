@@ -55,8 +55,9 @@ class RegistrationConfig:
       yaw/roll/pitch perturbations of the guess; for poor guesses) or ``"none"`` (trust the guess).
     - ``overlap``: ``"voxel"`` (points near the other map's points under the guess),
       ``"bbox"`` (thesis Alg. 2: intersection of bounding boxes) or ``"none"`` (all points).
-    - ``overlap_margin``: [m] slack for the overlap test (``None``: ICP's max correspondence
-      distance, so every point ICP could match is kept).
+    - ``overlap_margin``: [m] the overlap test's slack: ``radius`` of ``"voxel"`` (a point is
+      kept if the other cloud has a point that close under the guess), ``margin`` of
+      ``"bbox"`` (``None``: 3 voxels for ``"voxel"``, the thesis's 1 m for ``"bbox"``).
     - ``min_overlap_points``: fewer common points in either map means "no overlap" (an error).
     - ``max_correspondence_distance`` / ``min_correspondence_distance`` [m]: ICP's distance
       schedule (``None``: 10 and 2 voxels), halved by ``shrink_factor`` each time the change of

@@ -1,0 +1,149 @@
+"""``octomerge merge`` / ``dump-config`` / ``demo`` end to end through ``cli.main``: outputs,
+reports, figures, exit codes and messages for bad input, never overwriting an input."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from octomerge_jax.cli import main
+from octomerge_jax.io import load, save
+
+from test_pipeline import T_TRUE, robot_map, small_pair
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    m1, m2, _ = small_pair()
+    save(m1, d / "a.ot")
+    save(m2, d / "b.ot")
+    save(robot_map((0.8, 9.0), res=0.2), d / "coarse.ot")
+    return d
+
+
+def _guess_args(dyaw=0.08):
+    x, y = T_TRUE[0, 3] + 0.05, T_TRUE[1, 3] - 0.05
+    return [f"{x}", f"{y}", "0", "0", "0", f"{math.pi / 4 + dyaw}"]
+
+
+def test_merge_positional_thesis_order_with_report_and_figures(files, capsys):
+    out = files / "merged.bt"
+    rc = main(["merge", str(files / "a.ot"), str(files / "b.ot"), str(out), *_guess_args(),
+               "--report", str(files / "r.json"), "--figure", str(files / "fig.png"),
+               "--map-figure", str(files / "map.png"),
+               "--true-xyz", f"{T_TRUE[0, 3]}", f"{T_TRUE[1, 3]}", "0",
+               "--true-rpy", "0", "0", f"{math.pi / 4}"])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    merged = load(out)
+    rep = json.loads((files / "r.json").read_text())
+    assert rep["counts"]["leaves_merged"] > 0 and rep["icp"] is not None
+    assert rep["epsilon_r"] < rep["epsilon_r_init"]
+    assert "epsilon_r" in text and str(out) in text
+    for png in ("fig.png", "map.png"):
+        data = (files / png).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    # .bt stores maximum likelihood: the merged map is non-trivial and in map 1's frame
+    assert merged.num_leaves > 1000
+    assert not list(files.glob(".merged.bt.*"))  # no temp files left behind
+
+
+def test_merge_flags_refine_none_equals_guess(files):
+    out = files / "none.ot"
+    g = [float(v) for v in _guess_args()]
+    rc = main(["merge", str(files / "a.ot"), str(files / "b.ot"), str(out), "--xyz", *map(str, g[:3]),
+               "--rpy", *map(str, np.degrees(g[3:])), "--degrees", "--refine", "none",
+               "--report", str(files / "none.json"), "-q"])
+    assert rc == 0
+    rep = json.loads((files / "none.json").read_text())
+    assert rep["icp"] is None and rep["refine"] == "none"
+    assert np.asarray(rep["T_1_2"])[0, 3] == pytest.approx(g[0])
+    assert np.asarray(rep["T_1_2"])[1, 0] == pytest.approx(math.sin(g[5]))
+
+
+def _err(capsys):
+    return capsys.readouterr().err
+
+
+def test_merge_bad_inputs_exit_codes(files, capsys, tmp_path):
+    a, b = str(files / "a.ot"), str(files / "b.ot")
+    out = str(tmp_path / "o.bt")
+    assert main(["merge", a, str(files / "missing.bt"), out]) == 1
+    assert "missing.bt: no such file" in _err(capsys)
+    assert main(["merge", a, b, out, "0", "0", "nan", "0", "0", "0"]) == 1
+    assert "z = nan is not a finite number" in _err(capsys)
+    assert main(["merge", a, b, out, "1", "2"]) == 2
+    assert "6 numbers" in _err(capsys)
+    assert main(["merge", a, str(files / "coarse.ot"), out, *_guess_args()]) == 3
+    assert "resolutions differ" in _err(capsys) and "--resample" in _err(capsys)
+    assert main(["merge", a, b, out, "80", "0", "0", "0", "0", "0"]) == 4
+    assert "no overlap" in _err(capsys)
+    assert main(["merge", a, b, str(tmp_path / "o.txt")]) == 1
+    assert "must end in .bt or .ot" in _err(capsys)
+    assert not (tmp_path / "o.bt").exists()
+
+
+def test_merge_never_overwrites_inputs(files, capsys):
+    a, b = files / "a.ot", files / "b.ot"
+    before = a.read_bytes()
+    for force in ([], ["--force"]):
+        assert main(["merge", str(a), str(b), str(a), *_guess_args(), *force]) == 1
+        assert "is also an input" in _err(capsys)
+    assert main(["merge", str(a), str(b), str(files / "x.bt"), "--report", str(b)]) == 1
+    assert a.read_bytes() == before
+    # an existing (non-input) output needs --force
+    (files / "exists.bt").write_bytes(b"old")
+    assert main(["merge", str(a), str(b), str(files / "exists.bt"), *_guess_args()]) == 1
+    assert "--force" in _err(capsys)
+    assert (files / "exists.bt").read_bytes() == b"old"
+
+
+def test_merge_strict_not_converged_exit_5(files, capsys, tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[registration]\nmax_iterations = 2\n")
+    out = tmp_path / "s.bt"
+    args = ["merge", str(files / "a.ot"), str(files / "b.ot"), str(out), *_guess_args(), "--config", str(cfg)]
+    assert main(args) == 0  # default: warn and use ICP's last transform
+    assert "did not converge" in _err(capsys)
+    assert main([*args, "--strict", "--force"]) == 5
+
+
+def test_dump_config_round_trip(tmp_path, capsys):
+    assert main(["dump-config"]) == 0
+    text = capsys.readouterr().out
+    data = tomllib.loads(text)
+    assert data["registration"]["refine"] == "icp" and data["fuse"]["rule"] == "sum"
+    (tmp_path / "c.toml").write_text(text.replace('rule = "sum"', 'rule = "max"'))
+    assert main(["dump-config", "--config", str(tmp_path / "c.toml"), "--json",
+                 "--out", str(tmp_path / "c.json")]) == 0
+    assert json.loads((tmp_path / "c.json").read_text())["fuse"]["rule"] == "max"
+    (tmp_path / "bad.toml").write_text("[fuse]\nrul = 'max'\n")
+    assert main(["dump-config", "--config", str(tmp_path / "bad.toml")]) == 1
+    assert "unknown setting fuse.rul" in capsys.readouterr().err
+
+
+def test_help_lists_commands(capsys):
+    with pytest.raises(SystemExit):
+        main(["merge", "--help"])
+    text = capsys.readouterr().out
+    assert "x y z roll pitch yaw" in text and "exit codes" in text
+
+
+@pytest.mark.slow
+def test_demo_runs(tmp_path, capsys):  # the README's main job; minutes on 2 busy cores
+    rc = main(["demo", "--out-dir", str(tmp_path / "demo")])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    rep = json.loads((tmp_path / "demo" / "report.json").read_text())
+    assert rep["epsilon_r"] < 0.25 and rep["epsilon_t"] < 0.9  # thesis "coherent" limits
+    assert rep["epsilon_r"] < rep["epsilon_r_init"]
+    for f in ("merged.bt", "map1.bt", "map2.bt", "overlap_before_after.png", "merged_map.png"):
+        assert (tmp_path / "demo" / f).is_file(), f
+    assert "epsilon before ICP" in out and "epsilon after  ICP" in out
