@@ -33,7 +33,8 @@ class Scene:
       mesh: ``trimesh.Trimesh`` in the world frame [m], z up.
       name: short label.
       paths: two ``(k, 2)`` arrays of xy waypoints [m] (robot 1, robot 2).
-      targets: per path, an xy point [m] the sensor faces, or ``None`` to face along the path.
+      targets: per path, ``None`` (face along the path), an xy point [m] the sensor faces, or
+        ``(k, 2)`` points, one per waypoint (see ``poses_along_path``).
       closed: per path, whether it loops back to its start.
       sensor_height: sensor height above the floor [m].
     """
@@ -127,9 +128,16 @@ def lab_room(seed: int = 0, size=(10.0, 7.0), height: float = 2.5, num_boxes: in
     mesh = trimesh.util.concatenate(parts)
     r1 = min(1.9, sy / 2 - 0.6)
     r2 = min(half + 1.2, sy / 2 - 0.6)
-    path1 = _loop(box_c, min(r1 + 0.5, sx / 4 - 0.3), r1, 14)
-    path2 = _loop(fence_c, min(r2, sx / 4 - 0.3), r2, 14)
-    return Scene(mesh, "lab_room", (path1, path2), (box_c, fence_c), (True, True), 0.45)
+    # Each robot circles its landmark facing it, then drives towards the middle of the room
+    # facing the other landmark: the maps overlap on both landmarks' near sides (§7.2).
+    rx1, rx2 = min(r1 + 0.5, sx / 4 - 0.3), min(r2, sx / 4 - 0.3)
+    loop1 = _loop(box_c, rx1, r1, 14)  # starts on the east side
+    loop2 = _loop(fence_c, rx2, r2, 14)[np.r_[7:14, 0:8]]  # starts and ends on the west side
+    path1 = np.vstack([loop1, loop1[:1], [[box_c[0] + rx1 + 0.6, 0.6]]])
+    path2 = np.vstack([loop2, [[fence_c[0] - rx2 - 0.6, -0.6]]])
+    t1 = np.vstack([np.tile(box_c, (len(loop1), 1)), np.tile(fence_c, (2, 1))])
+    t2 = np.vstack([np.tile(fence_c, (len(loop2) - 1, 1)), np.tile(box_c, (2, 1))])
+    return Scene(mesh, "lab_room", (path1, path2), (t1, t2), (False, False), 0.45)
 
 
 def office_floor(seed: int = 0, size=(16.0, 10.0), height: float = 2.5,

@@ -36,8 +36,8 @@ def pose_from_xyz_rpy(x, y, z, roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
     return T
 
 
-def resample_path(waypoints, spacing: float, closed: bool = False) -> np.ndarray:
-    """Points every ``spacing`` metres along the polyline through ``waypoints (k, 2)``."""
+def _resample(waypoints, spacing: float, closed: bool):
+    """(points (N, 2), their arc length (N,), waypoint arc lengths (k [+1],))."""
     w = np.asarray(waypoints, dtype=np.float64)
     if w.ndim != 2 or w.shape[1] != 2 or len(w) == 0:
         raise ValueError(f"waypoints: expected (k, 2), got shape {w.shape}")
@@ -45,27 +45,31 @@ def resample_path(waypoints, spacing: float, closed: bool = False) -> np.ndarray
         raise ValueError(f"spacing must be positive metres, got {spacing!r}")
     if closed:
         w = np.vstack([w, w[:1]])
-    if len(w) == 1:
-        return w.copy()
-    seg = np.linalg.norm(np.diff(w, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    total = s[-1]
-    n = max(int(np.floor(total / spacing)), 1)
-    stop = total if not closed else total - spacing / 2
-    t = np.arange(0.0, stop + 1e-9, spacing)[: n + 1]
-    return np.stack([np.interp(t, s, w[:, 0]), np.interp(t, s, w[:, 1])], axis=1)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(w, axis=0), axis=1))])
+    if len(w) == 1 or s[-1] == 0:
+        return w[:1].copy(), np.zeros(1), s
+    stop = s[-1] if not closed else s[-1] - spacing / 2
+    t = np.arange(0.0, stop + 1e-9, spacing)
+    xy = np.stack([np.interp(t, s, w[:, 0]), np.interp(t, s, w[:, 1])], axis=1)
+    return xy, t, s
+
+
+def resample_path(waypoints, spacing: float, closed: bool = False) -> np.ndarray:
+    """Points every ``spacing`` metres (arc length) along the polyline through ``waypoints (k, 2)``."""
+    return _resample(waypoints, spacing, closed)[0]
 
 
 def poses_along_path(waypoints, spacing: float = 0.25, height: float = 0.5, target=None,
                      closed: bool = False) -> np.ndarray:
     """Sensor poses ``T_world_sensor (N, 4, 4)`` every ``spacing`` m along the path.
 
-    The sensor faces ``target`` (xy) if given, else along the direction of travel.
+    ``target``: ``None`` (face along the direction of travel), one xy point ``(2,)`` to face
+    throughout, or ``(k, 2)`` points, one per waypoint, faced along the segment starting there
+    (rows of NaN mean: face along the path on that segment).
     """
-    xy = resample_path(waypoints, spacing, closed)
-    if target is not None:
-        d = np.asarray(target, float).reshape(1, 2) - xy
-    elif closed:
+    w = np.asarray(waypoints, dtype=np.float64)
+    xy, t, s = _resample(w, spacing, closed)
+    if closed:
         d = np.roll(xy, -1, axis=0) - xy
     else:
         d = np.zeros_like(xy)
@@ -73,9 +77,18 @@ def poses_along_path(waypoints, spacing: float = 0.25, height: float = 0.5, targ
         if len(xy) > 1:
             d[:-1] = xy[1:] - xy[:-1]
             d[-1] = d[-2]
+    if target is not None:
+        tg = np.asarray(target, dtype=np.float64)
+        if tg.shape == (2,):
+            tg = np.broadcast_to(tg, w.shape)
+        if tg.shape != w.shape:
+            raise ValueError(f"target: expected (2,) or one xy per waypoint {w.shape}, got {tg.shape}")
+        seg = np.clip(np.searchsorted(s, t + 1e-9, side="right") - 1, 0, len(w) - 1)
+        per = tg[seg]
+        face = np.all(np.isfinite(per), axis=1)
+        d[face] = per[face] - xy[face]
     yaw = np.arctan2(d[:, 1], d[:, 0])
-    poses = np.stack([pose_from_xyz_rpy(x, y, height, 0.0, 0.0, a) for (x, y), a in zip(xy, yaw)])
-    return poses
+    return np.stack([pose_from_xyz_rpy(x, y, height, 0.0, 0.0, a) for (x, y), a in zip(xy, yaw)])
 
 
 def apply_odometry_drift(poses, rng: np.random.Generator, translation_std: float = 0.01,
