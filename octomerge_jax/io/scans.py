@@ -299,10 +299,10 @@ def write_scan_log(path, scans) -> None:
     for s in scans:
         s = s if isinstance(s, Scan) else Scan(np.asarray(s[0], float), np.asarray(s[1], float))
         roll, pitch, yaw = matrix_to_rpy(s.pose[:3, :3])
-        x, y, z = s.pose[:3, 3]
+        x, y, z = (float(v) for v in s.pose[:3, 3])
         out.write(f"NODE {x!r} {y!r} {z!r} {roll!r} {pitch!r} {yaw!r}\n")
-        for p in np.asarray(s.points, np.float64).reshape(-1, 3):
-            out.write(f"{p[0]!r} {p[1]!r} {p[2]!r}\n")
+        for px, py, pz in np.asarray(s.points, np.float64).reshape(-1, 3).tolist():
+            out.write(f"{px!r} {py!r} {pz!r}\n")
     with atomic_output(path) as tmp:
         Path(tmp).write_text(out.getvalue(), encoding="utf-8")
 
