@@ -73,11 +73,16 @@ def minimize(fun: Callable, x0, *args, maxiter: int, tol=1e-4, xtol=1e-5,
     iterations. Pure: jittable and vmappable.
     """
     jaxopt = _jaxopt()
-    solver = jaxopt.LBFGS(fun=fun, maxiter=int(maxiter), tol=0.0, max_stepsize=float(max_stepsize),
-                          history_size=int(history_size), implicit_diff=False, jit=True,
-                          linesearch="backtracking", linesearch_init="max",
-                          condition="armijo",
-                          stop_if_linesearch_fails=False)
+    with warnings.catch_warnings():
+        # jaxopt marks ``condition`` deprecated but still needs it: its default for the
+        # backtracking search is strong Wolfe, which fails on piecewise-smooth losses.
+        warnings.filterwarnings("ignore", message="Argument condition is deprecated",
+                                category=DeprecationWarning)
+        solver = jaxopt.LBFGS(fun=fun, maxiter=int(maxiter), tol=0.0,
+                              max_stepsize=float(max_stepsize), history_size=int(history_size),
+                              implicit_diff=False, jit=True, linesearch="backtracking",
+                              linesearch_init="max", condition="armijo",
+                              stop_if_linesearch_fails=False)
     x0 = jnp.asarray(x0)
     state0 = solver.init_state(x0, *args)
     hist0 = jnp.full((int(maxiter) + 1,), jnp.nan, state0.value.dtype).at[0].set(state0.value)
