@@ -1,0 +1,226 @@
+"""Tests for dense map-to-map alignment and transform tuning (registration/dense.py).
+
+The maps are built with ``tree.from_voxels`` from the shared synthetic room
+(``registration/_testing.py``): occupied voxels on its surfaces, free voxels in its interior,
+each robot seeing a crop, map 2 built in a frame rotated by pi/4 (like thesis §7.1). The
+simulator (``octomerge_jax.sim``) ray casts far too slowly for a < 60 s test budget on 2 cores.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from octomerge_jax import tree
+from octomerge_jax.registration import dense, metrics
+from octomerge_jax.registration._testing import surface_samples, xyz_rpy64
+
+RES = 0.2
+T_TRUE = xyz_rpy64(1.0, -0.5, 0.0, 0.0, 0.0, np.pi / 4)
+OPTS = dict(max_points=2048)
+
+
+def room_maps(res=RES, T_1_2=T_TRUE, crop_1=(-1.0, 8.0), crop_2=(3.5, 13.0)):
+    """Two robots' maps of the synthetic room: ``(map1, map2, T_1_2)``."""
+    occ_w = surface_samples(res / 3.0)
+    grid = np.mgrid[0.05:11.95:res / 2, 0.05:8.95:res / 2, 0.05:2.95:res / 2].reshape(3, -1).T
+    maps = []
+    for T_w_f, crop in ((np.eye(4), crop_1), (T_1_2, crop_2)):
+        T_f_w = np.linalg.inv(T_w_f)
+        to_f = lambda p: p @ T_f_w[:3, :3].T + T_f_w[:3, 3]  # noqa: E731
+        o = occ_w[(occ_w[:, 0] >= crop[0]) & (occ_w[:, 0] <= crop[1])]
+        f = grid[(grid[:, 0] >= crop[0]) & (grid[:, 0] <= crop[1])]
+        ko = np.unique(np.floor(to_f(o) / res).astype(np.int64), axis=0)
+        kf = np.unique(np.floor(to_f(f) / res).astype(np.int64), axis=0)
+        lin = lambda k: (k[:, 0] << 40) + (k[:, 1] << 20) + k[:, 2]  # noqa: E731
+        kf = kf[~np.isin(lin(kf), lin(ko))]
+        centres = (np.concatenate([ko, kf]) + 0.5) * res
+        lo = np.concatenate([np.full(len(ko), 2.0), np.full(len(kf), -1.5)]).astype(np.float32)
+        maps.append(tree.from_voxels(centres, lo, res))
+    return maps[0], maps[1], T_1_2
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return room_maps()
+
+
+@pytest.fixture(scope="module")
+def problem(pair):
+    m1, m2, _ = pair
+    return dense.prepare_alignment(m1, m2, **OPTS)
+
+
+def perturbed(x, y, z, roll, pitch, yaw, T=T_TRUE):
+    """Initial guess with a translation error (frame 1) and a rotation error (frame 2)."""
+    return xyz_rpy64(x, y, z, 0, 0, 0) @ T @ xyz_rpy64(0, 0, 0, roll, pitch, yaw)
+
+
+# ----------------------------------------------------------------------------- se(3), coarsen
+
+
+def test_se3_exp_matches_rotation_and_is_nan_free_at_zero():
+    w = np.array([0.3, -0.2, 0.5])
+    T = dense._se3_exp(jnp.asarray(np.r_[0.1, 0.2, -0.3, w], jnp.float32))
+    th = np.linalg.norm(w)
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / th
+    R = np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+    np.testing.assert_allclose(np.asarray(T[:3, :3]), R, atol=1e-6)
+    g = jax.jit(jax.jacfwd(dense._se3_exp))(jnp.zeros(6, jnp.float32))
+    assert np.all(np.isfinite(np.asarray(g)))
+    small = dense._se3_exp(jnp.asarray([0, 0, 0, 0.0999, 0, 0], jnp.float32))
+    big = dense._se3_exp(jnp.asarray([0, 0, 0, 0.1001, 0, 0], jnp.float32))
+    assert float(jnp.abs(small - big).max()) < 5e-4  # branches agree at the switch
+
+
+def test_coarsen_keeps_metric_positions_and_takes_max():
+    res = 0.1
+    c = np.array([[0.05, 0.05, 0.05], [0.15, 0.05, 0.05], [1.05, 0.05, 0.05]])
+    m = tree.from_voxels(c, np.array([-1.0, 2.0, -0.5], np.float32), res, prune_result=False)
+    mc = dense.coarsen(m, 1)
+    lv = mc.leaves()
+    assert mc.resolution == pytest.approx(0.2)
+    np.testing.assert_allclose(lv.centers, [[0.1, 0.1, 0.1], [1.1, 0.1, 0.1]], atol=1e-9)
+    np.testing.assert_allclose(lv.log_odds, [2.0, -0.5])
+
+
+# ----------------------------------------------------------------------------- loss
+
+
+def test_loss_gradients_match_finite_differences(problem):
+    fine = dense.AlignProblem(*[getattr(problem, f) for f in
+                                ("map1", "scale", "points2", "signed2", "weight2", "occupied2",
+                                 "center2", "radius")], levels=problem.levels)
+    T0 = jnp.asarray(perturbed(0.13, -0.07, 0.05, 0.01, -0.02, 0.03), jnp.float32)
+
+    @jax.jit
+    def f(z):
+        return dense.problem_loss(fine, dense.pose_from_increment(T0, z, fine.center2, fine.radius))
+
+    # Jittered sample points put the trilinear kinks at random offsets: a generic pose is away
+    # from them and the loss is smooth at the scale of the finite-difference step.
+    z = jnp.asarray([0.011, -0.007, 0.004, 0.006, -0.003, 0.009], jnp.float32)
+    check_grads(f, (z,), order=1, modes=("rev",), eps=2e-3, atol=2e-3, rtol=5e-2)
+
+
+def test_no_nan_at_identity_and_voxel_centres(pair):
+    m1, _, _ = pair
+    # the map against itself, unjittered: every point exactly at a voxel centre of map 1
+    g = jax.jit(jax.grad(lambda T: dense.alignment_loss(m1, m1, T, jitter=False, max_points=512)))(
+        jnp.eye(4, dtype=jnp.float32))
+    assert np.all(np.isfinite(np.asarray(g)))
+    # a map agrees with itself better than with a copy shifted by one voxel
+    problem = dense.prepare_alignment(m1, m1, levels=(0,), max_points=512)
+    loss = jax.jit(dense.problem_loss)
+    assert float(loss(problem, np.eye(4))) < float(loss(problem, xyz_rpy64(RES, 0, 0, 0, 0, 0))) - 0.05
+
+
+def test_gradient_descent_reduces_error(problem):
+    T0 = perturbed(0.3, -0.2, 0.0, 0.0, 0.0, 0.06)
+    T0j = jnp.asarray(T0, jnp.float32)
+    c, r = problem.center2, problem.radius
+    grad = jax.jit(jax.grad(lambda z: dense.problem_loss(
+        problem, dense.pose_from_increment(T0j, z, c, r), level=1)))  # 0.4 m cells
+    z = jnp.zeros(6, jnp.float32)
+    for _ in range(25):
+        z = z - 1.0 * grad(z)
+    T = dense.pose_from_increment(T0j, z, c, r)
+    e0 = float(metrics.translation_distance(T0, T_TRUE)), float(metrics.rotation_angle_error(T0, T_TRUE))
+    e1 = float(metrics.translation_distance(T, T_TRUE)), float(metrics.rotation_angle_error(T, T_TRUE))
+    assert e1[0] < 0.5 * e0[0] and e1[1] < 0.5 * e0[1], (e0, e1)
+
+
+# ----------------------------------------------------------------------------- align_dense
+
+# Table 7.1-style initial errors the thesis's ICP corrected (rows 2, 3, 8, 10, 15), plus a
+# hopeless yaw error of 2.5 rad that must be reported, not "converged".
+GOOD = [(0, 0, 0, 0, 0, -0.265), (0, 0, 0, 0, 0, 0.185), (1, 0, 0, 0, 0, 0),
+        (1, 1, 1, 0, 0, 0.185), (1, 1, 0, -0.1, 0, 0)]
+HOPELESS = (0, 0, 0, 0, 0, 2.5)
+
+
+@pytest.fixture(scope="module")
+def batch_result(problem):
+    T_inits = np.stack([perturbed(*e) for e in GOOD + [HOPELESS]])
+    return dense.solve_alignment(problem, T_inits)
+
+
+def test_align_dense_recovers_thesis_errors(batch_result):
+    r = batch_result
+    for i, e in enumerate(GOOD):
+        rot = float(metrics.rotation_angle_error(r.T_1_2[i], T_TRUE))
+        tr = float(metrics.translation_distance(r.T_1_2[i], T_TRUE))
+        assert int(r.status[i]) == dense.STATUS_CONVERGED, (e, int(r.status[i]))
+        assert bool(r.converged[i])
+        assert rot < 0.01 and tr < RES, (e, rot, tr)
+        hist = np.asarray(r.loss_history[i, -1])
+        hist = hist[np.isfinite(hist)]
+        assert hist[-1] <= hist[0] + 1e-6
+
+
+def test_hopeless_start_reports_failure(batch_result):
+    i = len(GOOD)
+    assert int(batch_result.status[i]) in (dense.STATUS_POOR_AGREEMENT, dense.STATUS_LOW_OVERLAP)
+    assert not bool(batch_result.converged[i])
+
+
+def test_no_recompilation_within_bucket(pair, problem, batch_result):
+    m1, m2, _ = pair
+    before = dense._solve_many_jit._cache_size()
+    other = dense.prepare_alignment(m1, m2, seed=1, map_capacity=problem.map1.capacity,
+                                    point_capacity=problem.points2.shape[1], **OPTS)
+    T_inits = np.stack([perturbed(0.1, 0, 0, 0, 0, 0.05 * i) for i in range(len(GOOD) + 1)])
+    jax.block_until_ready(dense.solve_alignment(other, T_inits, min_agreement=0.7))
+    assert dense._solve_many_jit._cache_size() == before
+
+
+def test_host_errors_name_the_argument(pair, problem):
+    m1, m2, _ = pair
+    with pytest.raises(ValueError, match="T_1_2_init"):
+        dense.solve_alignment(problem, np.diag([1.0, 1.0, 2.0, 1.0]))
+    with pytest.raises(ValueError, match="levels"):
+        dense.prepare_alignment(m1, m2, levels=())
+    with pytest.raises(ValueError, match="free_weight"):
+        dense.prepare_alignment(m1, m2, free_weight=-1.0)
+    with pytest.raises(ValueError, match="maxiter"):
+        dense.solve_alignment(problem, np.eye(4), maxiter=0)
+
+
+# ----------------------------------------------------------------------------- tuning API
+
+
+def test_transformed_occupancy_matches_transform_map_and_has_gradients(pair):
+    from octomerge_jax.resample import transform_map
+    _, m2, T = pair
+    out = transform_map(m2, T)
+    lv = out.leaves()
+    sel = lv.depths == 16
+    pts = lv.centers[sel][::50]
+    v, known = dense.transformed_occupancy(m2, T, pts, space="log_odds")
+    ref = lv.log_odds[sel][::50]
+    ok = np.asarray(known)
+    lo_c = np.clip(np.asarray(v), -2.0, 3.5)
+    assert ok.mean() > 0.99
+    np.testing.assert_allclose(lo_c[ok], np.clip(ref[ok], -2.0, 3.5), atol=2e-3)
+    g = jax.grad(lambda T_: jnp.sum(dense.transformed_occupancy(m2, T_, pts + 0.013)[0]))(
+        jnp.asarray(T, jnp.float32))
+    assert np.all(np.isfinite(np.asarray(g))) and float(jnp.abs(g).sum()) > 0
+
+
+def test_fused_log_odds_gradient_tunes_pose(pair):
+    m1, m2, T = pair
+    pts = np.asarray(m1.leaves().centers[::40], np.float32)
+    ref, _ = dense.fused_log_odds(m1, m2, jnp.asarray(T, jnp.float32), pts)
+    T0 = jnp.asarray(perturbed(0.08, 0.0, 0.0, 0, 0, 0), jnp.float32)
+
+    def loss(t):
+        Tt = T0.at[0, 3].add(t)
+        return jnp.mean((dense.fused_log_odds(m1, m2, Tt, pts)[0] - ref) ** 2)
+
+    g = float(jax.grad(loss)(jnp.float32(0.0)))
+    assert np.isfinite(g) and g < 0  # moving back towards the true x lowers the loss
