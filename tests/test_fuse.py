@@ -200,7 +200,7 @@ def test_gap_decomposition_matches_greedy():
     assert got == [c for w in want for c in w]
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 2 ** 32 - 1), rule=st.sampled_from(F.RULES))
 def test_fuse_matches_bruteforce(seed, rule):
     m1, m2 = pair(seed)
