@@ -1,0 +1,29 @@
+"""Execute the notebooks (nbclient, small settings): every cell must run and their assertions
+hold. Needs nbclient, nbformat and ipykernel (the test extra)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
+
+
+@pytest.mark.parametrize("name", ["01_merge_two_maps.ipynb", "02_thesis_tables.ipynb"])
+def test_notebook_runs(name):
+    nbformat = pytest.importorskip("nbformat")
+    nbclient = pytest.importorskip("nbclient")
+    pytest.importorskip("ipykernel")
+    path = NOTEBOOKS / name
+    nb = nbformat.read(path, as_version=4)
+    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                                     resources={"metadata": {"path": str(NOTEBOOKS)}})
+    client.execute()
+    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+              if o.get("output_type") == "error"]
+    assert not errors
+    images = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+              if "image/png" in o.get("data", {})]
+    if name.startswith("01"):
+        assert len(images) >= 3  # overlap, merged map, ICP convergence figures
