@@ -1,0 +1,131 @@
+"""End-to-end merge time per stage for three map sizes, and merge_batch throughput vs a loop.
+
+Maps: the room scene of ``tests/test_pipeline.py`` (robot 1 sees x < 3 m in the world frame,
+robot 2 sees x >= 0.8 m in a frame yawed by pi/4) at three resolutions, so leaf counts grow
+~4x per step. Each size is merged from a guess 0.1 rad / 0.1 m off: read both files, occupied
+clouds, overlap, ICP, transform, fuse, write. The first call (compile) is timed apart from the
+steady state (median of ``--repeats``).
+
+Anchor (issue 7): the thesis pipeline in C++ on OctoMap 1.10 on this 2-core CPU takes 1.75 s /
+7.7 s / 32.8 s end to end for 0.26M+0.31M / 1.05M+1.18M / 4.4M+4.7M leaves; use ``--res`` to
+reach those sizes (memory and minutes grow accordingly).
+
+    .venv/bin/python benchmarks/bench_merge.py                       # 0.1, 0.05, 0.025 m
+    .venv/bin/python benchmarks/bench_merge.py --res 0.1 --batch 8    # batch throughput only
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+
+STAGES = ("load", "occupied_points", "overlap", "icp", "transform", "fuse", "save")
+
+
+def make_pair(res):
+    import test_pipeline as tp
+
+    tp.world_scene.cache_clear()
+    m1 = tp.robot_map((-1.0, 3.0), res=res)
+    m2 = tp.robot_map((0.8, 9.0), res=res, T_world_map=tp.T_TRUE)
+    return m1, m2, tp.T_TRUE
+
+
+def guess(dyaw=0.1, dx=0.1):
+    from octomerge_jax.pipeline import transform_from_xyz_rpy
+
+    return transform_from_xyz_rpy(0.35 + dx, -0.25 - 0.05, 0.0, 0.0, 0.0, math.pi / 4 + dyaw)
+
+
+def end_to_end(p1, p2, out, T_init, T_true):
+    from octomerge_jax.io import load, save
+    from octomerge_jax.pipeline import merge
+
+    t0 = time.perf_counter()
+    m1, m2 = load(p1), load(p2)
+    t_load = time.perf_counter() - t0
+    merged, rep = merge(m1, m2, T_init, T_1_2_true=T_true)
+    t1 = time.perf_counter()
+    save(merged, out)
+    t = dict(rep.timings, load=t_load, save=time.perf_counter() - t1)
+    t["end_to_end"] = time.perf_counter() - t0
+    return t, rep
+
+
+def bench_sizes(resolutions, repeats):
+    from octomerge_jax.io import save
+
+    print("\n## End to end per stage (seconds; first call includes compilation)\n")
+    print("| res [m] | leaves m1+m2 | merged | call | " + " | ".join(STAGES) + " | end to end | eps_r | eps_t |")
+    print("|---" * (len(STAGES) + 7) + "|")
+    with tempfile.TemporaryDirectory() as d:
+        for res in resolutions:
+            m1, m2, T = make_pair(res)
+            p1, p2, out = Path(d) / "a.ot", Path(d) / "b.ot", Path(d) / "m.bt"
+            save(m1, p1)
+            save(m2, p2)
+            first, rep = end_to_end(p1, p2, out, guess(), T)
+            steady = [end_to_end(p1, p2, out, guess(), T)[0] for _ in range(repeats)]
+            med = {k: statistics.median(s[k] for s in steady) for k in steady[0]}
+            for name, t in (("first", first), (f"median of {repeats}", med)):
+                print(f"| {res:g} | {m1.num_leaves:,}+{m2.num_leaves:,} | {rep.counts['leaves_merged']:,} | {name} | "
+                      + " | ".join(f"{t.get(k, 0.0):.2f}" for k in STAGES)
+                      + f" | {t['end_to_end']:.2f} | {rep.epsilon_r:.3f} | {rep.epsilon_t:.3f} |", flush=True)
+
+
+def bench_batch(res, n_pairs):
+    from octomerge_jax.batch import merge_batch
+    from octomerge_jax.pipeline import merge
+
+    m1, m2, T = make_pair(res)
+    rng = np.random.default_rng(0)
+    pairs = [(m1, m2, guess(float(rng.uniform(-0.1, 0.1)), float(rng.uniform(-0.1, 0.1))), T)
+             for _ in range(n_pairs)]
+    # warm up both paths (compilation) on the same shapes
+    merge(*pairs[0][:3])
+    merge_batch(pairs[:n_pairs])
+    t0 = time.perf_counter()
+    for p in pairs:
+        merged, _ = merge(*p[:3])
+        jax.block_until_ready(merged)
+    t_loop = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res_b = merge_batch(pairs)
+    jax.block_until_ready([r.merged for r in res_b])
+    t_batch = time.perf_counter() - t0
+    ok = sum(r.status == "ok" for r in res_b)
+    print(f"\n## merge_batch vs a loop of merge ({n_pairs} pairs of {m1.num_leaves:,}+{m2.num_leaves:,} leaves at {res:g} m, steady state)\n")
+    print("| method | seconds | pairs/s |\n|---|---|---|")
+    print(f"| loop of merge() | {t_loop:.2f} | {n_pairs / t_loop:.2f} |")
+    print(f"| merge_batch ({ok} ok) | {t_batch:.2f} | {n_pairs / t_batch:.2f} |")
+    print(f"\nspeed-up {t_loop / t_batch:.2f}x")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--res", type=float, nargs="+", default=[0.1, 0.05, 0.025])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--batch", type=int, default=8, help="pairs for the batch benchmark (0: skip)")
+    ap.add_argument("--no-sizes", action="store_true")
+    a = ap.parse_args(argv)
+    print(f"# bench_merge: {platform.machine()} x{__import__('os').cpu_count()}, "
+          f"{jax.devices()[0].platform}, JAX {jax.__version__}")
+    if not a.no_sizes:
+        bench_sizes(a.res, a.repeats)
+    if a.batch:
+        bench_batch(max(a.res), a.batch)
+
+
+if __name__ == "__main__":
+    main()
