@@ -29,16 +29,19 @@ def test_merge_batch_matches_merge_and_isolates_bad_pairs():
     assert [r.status for r in res] == ["ok", "error", "ok", "error", "error"]
     assert [r.kind for r in res[1:2] + res[3:]] == ["resolution", "transform", "no_overlap"]
     assert "resolutions differ" in res[1].message and "NaN or infinite" in res[3].message
-    # the ICP pairs ran in one vmapped call; results equal single merges
-    for k, g in ((0, perturbed()), (2, g2)):
-        single, rep = merge(m1, m2, g, T_1_2_true=T)
-        b = res[k].report
-        np.testing.assert_allclose(b.T_1_2, rep.T_1_2, atol=2e-4)
-        assert b.icp["num_iterations"] == rep.icp["num_iterations"]
-        assert abs(res[k].merged.num_leaves - single.num_leaves) <= 0.01 * single.num_leaves
-        assert b.epsilon_r < 0.1
-    if np.allclose(res[0].report.T_1_2, merge(m1, m2, perturbed())[1].T_1_2, atol=0, rtol=0):
-        assert tree.equal(res[0].merged, merge(m1, m2, perturbed())[0])
+    # the two ICP pairs ran in one vmapped call and were fused by one vmapped fuse
+    assert res[0].report.timings["icp"] == res[2].report.timings["icp"]
+    for k in (0, 2):
+        assert res[k].report.epsilon_r < 0.1 and res[k].report.epsilon_t < 0.15
+    # ... and give what a single merge gives
+    single, rep = merge(m1, m2, perturbed(), T_1_2_true=T)
+    b = res[0].report
+    np.testing.assert_allclose(b.T_1_2, rep.T_1_2, atol=2e-4)
+    assert b.icp["num_iterations"] == rep.icp["num_iterations"]
+    if np.array_equal(b.T_1_2, rep.T_1_2):
+        assert tree.equal(res[0].merged, single)
+    else:  # float32 reductions may differ in the last bit under vmap
+        assert abs(res[0].merged.num_leaves - single.num_leaves) <= 0.01 * single.num_leaves
 
 
 def _write_manifest(tmp_path, rows):

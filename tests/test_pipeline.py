@@ -171,6 +171,16 @@ def test_not_converged_policy():
     np.testing.assert_allclose(rep.T_1_2, perturbed())
 
 
+def test_merge_many_refine_none_equals_fold():
+    m1, m2, T = small_pair()
+    merged, reps = merge_many([m1, m2], [T], refine="none")
+    assert len(reps) == 1 and reps[0].icp is None
+    assert tree.equal(merged, fuse(m1, transform_map(m2, T)))  # fuse_many of 2 == fuse
+    with pytest.raises(ValueError, match="T_inits has 2 transforms for 2 maps"):
+        merge_many([m1, m2], [T, T])
+
+
+@pytest.mark.slow  # three registrations and two fuse_many compilations: ~1 min on 2 cores
 def test_merge_many_star_and_chain():
     m1, m2, T = small_pair()
     # a third robot: the middle of the room in a frame shifted by 0.5 m and turned by -0.3 rad
