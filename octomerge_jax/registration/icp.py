@@ -17,11 +17,18 @@ distances are planned on the host (their *number* is static, their values traced
 per stage is built once per call and shared by all hypotheses of ``icp_multi``.
 
 **Why closed form rather than se(3) Gauss-Newton (jaxopt).** For point-to-point residuals the
-Kabsch solution is the exact global minimiser of eq. 3.18 for fixed correspondences; one
-Gauss-Newton step is not (it linearises the rotation) and needs 2-4 inner steps to reach the same
-point, each as expensive as the closed form. Measured on the benchmark scene (bench_icp.py) the
-closed form needs fewer correspondence searches per converged registration, and the search
-dominates the time (>95 %). jaxopt is therefore not used.
+Kabsch solution is the exact global minimiser of eq. 3.18 for fixed correspondences, while one
+Gauss-Newton step linearises the rotation and needs several inner steps to reach the same
+point. The correspondence search dominates the cost of an iteration, so the closed form is the
+cheaper way to the same fixed point. (A measured comparison against jaxopt is not done yet;
+jaxopt is not imported.)
+
+**Coarse stages.** The grids of all but the last stage store, per cell, the centroids of the
+occupied half-size sub-cells (a voxel-grid downsample at ``d/2``, like the thesis code's PCL
+VoxelGrid at 10 res), at most 8 per cell, so the fixed ``cell_capacity`` never drops data there;
+the last stage matches the target points themselves. At the last stage ICP stops when the
+change falls below ``final_epsilon`` (default ``transformation_epsilon / 100``), so that it
+reaches the exact fixed point (noise-free clouds register to ~1e-6).
 
 **Differentiation: implicit, at the fixed point.** The converged transform ``T*`` satisfies the
 optimality condition ``g(T*; source, target[c]) = 0`` of eq. 3.18 with the last correspondences
@@ -83,11 +90,11 @@ class IcpResult:
     - ``T_target_source``: ``(4, 4)`` float32, maps source points into the target frame.
     - ``converged``: ``()`` bool, converged at the floor correspondence distance.
     - ``num_iterations``: ``()`` int32, correspondence searches performed.
-    - ``num_inliers``: ``()`` int32, source points with a target point within the final
-      correspondence distance under ``T_target_source``.
+    - ``num_inliers``: ``()`` int32, source points with a target point within the floor
+      (smallest) correspondence distance under ``T_target_source``.
     - ``rmse``: ``()`` float32 [m], root mean square inlier distance.
     - ``fitness``: ``()`` float32, ``num_inliers / valid source points``.
-    - ``correspondence_distance``: ``()`` float32 [m], the final distance.
+    - ``correspondence_distance``: ``()`` float32 [m], the distance of the last stage reached.
     - ``status``: ``()`` int32, see module docstring.
     - ``grid_overflow``: ``()`` int32, target points dropped by the final-stage grid (0 means
       the nearest-neighbour search was exact).
@@ -111,8 +118,9 @@ class IcpResult:
 @dataclasses.dataclass(frozen=True)
 class IcpMultiResult:
     """``icp_multi`` output: the best candidate, every candidate (leading axis ``k``), the
-    index of the best, its score (``num_inliers - rmse / d_final``, higher is better) and the
-    initial guesses used (``(k, 4, 4)``)."""
+    index of the best, the scores (``num_inliers - rmse / d_floor``, higher is better) and the
+    initial guesses used (``(k, 4, 4)``). Inliers and rmse are measured at the floor distance
+    for every candidate."""
 
     best: IcpResult
     candidates: IcpResult
@@ -258,8 +266,9 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
     T, stage, it, done, status, idx, w, match = jax.lax.while_loop(cond, body, init)
     status = jnp.where(done, status, STATUS_MAX_ITERATIONS).astype(jnp.int32)
 
-    # final report at the returned transform and final distance
-    d2, _, w_fin, _ = correspond(T, stage)
+    # final report at the returned transform and the floor distance (a common yardstick, so
+    # that icp_multi can rank candidates that stopped at different stages)
+    d2, _, w_fin, _ = correspond(T, jnp.int32(num_stages - 1))
     n_in = jnp.sum(w_fin).astype(jnp.int32)
     rmse = jnp.sqrt(jnp.sum(jnp.where(w_fin, d2, 0.0)) / jnp.maximum(n_in, 1).astype(jnp.float32))
     n_valid = jnp.maximum(source_count, 1).astype(jnp.float32)
@@ -431,7 +440,7 @@ def _icp_multi_padded(source, source_count, target, target_count, hypotheses, di
     run = lambda T: _icp_core(source, source_count, target, grids, T, dists, epsilon, final_epsilon,
                               min_inliers, max_iterations)
     cands = jax.vmap(run)(hypotheses)
-    scores = cands.num_inliers.astype(jnp.float32) - cands.rmse / cands.correspondence_distance
+    scores = cands.num_inliers.astype(jnp.float32) - cands.rmse / dists[-1]
     best = jnp.argmax(scores).astype(jnp.int32)
     best_res = jax.tree_util.tree_map(lambda a: a[best], cands)
     return IcpMultiResult(best_res, cands, best, scores, hypotheses)
@@ -446,7 +455,7 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
               source_count=None, target_count=None) -> IcpMultiResult:
     """Multi-hypothesis ICP: ``vmap`` of ``icp`` over initial guesses sharing one set of
     target grids; returns the best by inlier count, ties broken by inlier rmse
-    (``score = num_inliers - rmse / d_final``), plus every candidate.
+    (``score = num_inliers - rmse / d_floor``, both at the floor distance), plus every candidate.
 
     ``hypotheses``: ``(k, 4, 4)`` absolute initial guesses ``T_target_source``; by default
     ``default_hypotheses(T_target_source_init, centroid of T_init * source, yaw_step_rad,
