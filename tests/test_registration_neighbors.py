@@ -60,3 +60,22 @@ def test_levels_and_chunked_queries():
         np.testing.assert_array_equal(np.asarray(idx)[m], bi[m])
     with pytest.raises(ValueError, match="powers of two"):
         nb.build_grid(P, 10, 1.0, table_size=300)
+
+
+def test_centroid_level_matches_voxel_grid_centroids():
+    rng = np.random.default_rng(3)
+    P = rng.uniform(0, 4, (2000, 3)).astype(np.float32)
+    g = nb.build_grids(P, 2000, np.array([1.0], np.float32), table_sizes=(4096,), cell_capacity=8,
+                       centroid_levels=(True,))
+    assert int(g.overflow[0]) == 0
+    sub = np.floor(P / 0.5).astype(np.int64)
+    _, inv = np.unique(sub, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    C = np.zeros((inv.max() + 1, 3))
+    np.add.at(C, inv, P)
+    C /= np.bincount(inv)[:, None]
+    Q = rng.uniform(0, 4, (500, 3)).astype(np.float32)
+    d2, idx, match = nb.nearest_with_points(g, Q)
+    D = ((Q[:, None].astype(np.float64) - C[None]) ** 2).sum(-1)
+    np.testing.assert_allclose(np.asarray(d2), D.min(1), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(match), C[D.argmin(1)], atol=1e-5)
