@@ -23,8 +23,8 @@ How, on flat Morton intervals (a leaf at depth ``d`` covers ``[code, code + 8^(1
 3. Cell counts per leaf, one exclusive prefix sum in merged order, and every output slot
    finds its owner with a scatter + cumulative max: the common refinement comes out
    already sorted. Values are combined per rule, clamped, and pruned maximally in one pass
-   (``_prune_runs``: a node collapses iff its interval lies in one run of contiguous,
-   equal-valued leaves), equal to ``tree.prune`` but without its 15 compaction rounds.
+   (``tree.prune``: a node collapses iff its interval lies in one run of contiguous,
+   equal-valued leaves).
 
 Rules (``rule=``):
 
@@ -63,7 +63,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import morton
+from . import morton, tree
 from .map import OccupancyMap, bucket_capacity
 
 __all__ = ["RULES", "FuseReport", "fuse", "fuse_many"]
@@ -163,12 +163,8 @@ def _put_digit(hi, lo, k, val):
 
 def _end_words(code, depth):
     """Exclusive end ``code + 8^(16-depth)`` of leaves: ``(hi, lo)``; may equal 2^48."""
-    shift = 3 * (_D - depth)
-    small = shift < morton.WORD_BITS
-    lo = code[..., 1] + jnp.where(small, jnp.left_shift(1, jnp.minimum(shift, 23)), 0)
-    carry = jnp.right_shift(lo, morton.WORD_BITS)
-    hi = code[..., 0] + jnp.where(small, carry, jnp.left_shift(1, jnp.maximum(shift - 24, 0)))
-    return hi, lo & _MASK
+    end = morton.end_words(code, depth)
+    return end[..., 0], end[..., 1]
 
 
 def _less(ah, al, bh, bl):
@@ -420,61 +416,6 @@ def _assemble(sides, orders, capacity: int, params, resolution, tree_depth):
     return m, total
 
 
-def _prune_runs(m: OccupancyMap) -> OccupancyMap:
-    """Maximal prune in one pass (same result as ``tree.prune``, which collapses 8 equal
-    siblings bottom-up in 15 compaction rounds).
-
-    A node (depth >= 1; the root is never created, as in OctoMap) ends up a leaf of the
-    maximally pruned tree exactly when its whole volume is known with one value. On sorted
-    leaves that is: the node's Morton interval lies inside one *run* of leaves that are
-    contiguous (each starts where the previous ends) and have equal log-odds (exact float
-    equality, as OctoMap's ``isNodeCollapsible``). So each leaf's final depth is the
-    shallowest ancestor depth inside its run (a 16-level loop of comparisons), the first leaf
-    of every final node keeps it, and one compaction drops the rest.
-    """
-    cap = m.capacity
-    valid = m.valid_mask()
-    i = jnp.arange(cap, dtype=jnp.int32)
-    eh, el = _end_words(m.code, m.depth)
-    prev = jnp.maximum(i - 1, 0)
-    joins_prev = (i > 0) & valid & (eh[prev] == m.code[:, 0]) & (el[prev] == m.code[:, 1]) \
-        & (m.log_odds[prev] == m.log_odds)
-    head = jax.lax.cummax(jnp.where(joins_prev, -1, i))
-    nxt = jnp.minimum(i + 1, cap - 1)
-    joins_next = (i + 1 < cap) & joins_prev[nxt]
-    tail = jax.lax.cummin(jnp.where(joins_next, cap, i), reverse=True)
-    rs_h, rs_l = m.code[head, 0], m.code[head, 1]
-    re_h, re_l = eh[tail], el[tail]
-    sh, sl = m.code[:, 0], m.code[:, 1]
-
-    def body(d, depth):
-        k = _D - d  # level of the depth-d ancestor
-        ah, al = _trunc(sh, sl, k)
-        one = jnp.full_like(sh, 1)
-        zero = jnp.zeros_like(sh)
-        # ancestor end = ancestor start + 8^k (k >= 1): add in the right word with carry
-        in_hi = k >= 8
-        add_l = jnp.where(in_hi, zero, jnp.left_shift(one, 3 * jnp.minimum(k, 7)))
-        add_h = jnp.where(in_hi, jnp.left_shift(one, 3 * jnp.maximum(k - 8, 0)), zero)
-        bl = al + add_l
-        bh = ah + add_h + jnp.right_shift(bl, morton.WORD_BITS)
-        bl = bl & _MASK
-        inside = ~_less(ah, al, rs_h, rs_l) & ~_less(re_h, re_l, bh, bl)
-        return jnp.where(inside & (d < depth), d, depth)
-
-    # shallowest containing ancestor: scan from depth 15 up to 1, keep the last (shallowest)
-    # depth that fits; containment is monotone in depth.
-    depth = jax.lax.fori_loop(0, _D - 1, lambda j, dp: body(_D - 1 - j, dp), m.depth)
-    th, tl = _trunc(sh, sl, _D - depth)
-    keep = valid & (th == sh) & (tl == sl)
-    pos = jnp.where(keep, jnp.cumsum(keep.astype(jnp.int32)) - 1, cap)
-    code = jnp.zeros_like(m.code).at[:, 0].set(_SENT).at[pos].set(m.code, mode="drop")
-    new_depth = jnp.full_like(m.depth, _D).at[pos].set(depth, mode="drop")
-    new_lo = jnp.zeros_like(m.log_odds).at[pos].set(m.log_odds, mode="drop")
-    return dataclasses.replace(m, code=code, depth=new_depth, log_odds=new_lo,
-                               count=jnp.sum(keep).astype(jnp.int32))
-
-
 @functools.partial(jax.jit, static_argnames=("capacity", "do_prune"))
 def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, do_prune: bool):
     le2, lt1 = _merge_ranks(m1.code, m2.code)  # #m2 <= m1_i, #m1 < m2_j
@@ -497,7 +438,7 @@ def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, 
     out, total = _assemble([s1, s2], [before1, before2], capacity, m1.params,
                            m1.resolution, m1.tree_depth)
     if do_prune:
-        out = _prune_runs(out)
+        out = tree._prune_runs(out)
     st1, st2 = s1["stats"], s2["stats"]
     report = FuseReport(
         leaves_in=jnp.stack([m1.count, m2.count]).astype(jnp.int32),
@@ -699,7 +640,7 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
     out, total = _assemble([table], [jnp.zeros((n_b,), jnp.int32)], capacity, p,
                            m0.resolution, m0.tree_depth)
     if do_prune:
-        out = _prune_runs(out)
+        out = tree._prune_runs(out)
     n_exact = sum(e.astype(jnp.int32) for e in exact)
     report = FuseReport(
         leaves_in=jnp.stack([m.count for m in maps]).astype(jnp.int32),

@@ -50,6 +50,7 @@ __all__ = [
     "truncate_words",
     "child_index_words",
     "or_offset_words",
+    "end_words",
     "words_less",
     "words_equal",
     "searchsorted_words",
@@ -259,6 +260,17 @@ def or_offset_words(words, k, shift):
     lo_part = jnp.where(big, 0, jnp.left_shift(k & (jnp.left_shift(1, lo_bits) - 1), shift))
     hi_part = jnp.where(big, jnp.left_shift(k, jnp.maximum(shift - WORD_BITS, 0)), jnp.right_shift(k, lo_bits))
     return jnp.stack([words[..., 0] | hi_part, words[..., 1] | lo_part], axis=-1)
+
+
+def end_words(words, depth):
+    """Exclusive end ``code + 8^(16 - depth)`` of nodes as words ``(..., 2)``; the end of the
+    whole key space (2^48) is ``(SENTINEL_HI, 0)``."""
+    shift = 3 * (TREE_DEPTH - jnp.asarray(depth, jnp.int32))
+    small = shift < WORD_BITS
+    lo = words[..., 1] + jnp.where(small, jnp.left_shift(1, jnp.minimum(shift, WORD_BITS - 1)), 0)
+    carry = jnp.right_shift(lo, WORD_BITS)
+    hi = words[..., 0] + jnp.where(small, carry, jnp.left_shift(1, jnp.maximum(shift - WORD_BITS, 0)))
+    return jnp.stack([hi, lo & WORD_MASK], axis=-1)
 
 
 def words_less(a, b):

@@ -98,29 +98,40 @@ def _compact(m: OccupancyMap, keep, depth=None, log_odds=None) -> OccupancyMap:
     return OccupancyMap(code, new_depth, new_lo, count, m.params, m.resolution, m.tree_depth)
 
 
-def _prune_depth(m: OccupancyMap, d) -> OccupancyMap:
-    """Collapse every complete group of 8 equal sibling leaves at depth ``d`` into its parent."""
+def _prune_runs(m: OccupancyMap) -> OccupancyMap:
+    """Maximal prune in one pass.
+
+    A node (depth >= 1: the root is never created, as OctoMap's ``prune`` never prunes it)
+    is a leaf of the maximally pruned tree exactly when its whole volume is known with one
+    value. On sorted leaves: its Morton interval lies inside one *run* of leaves that are
+    contiguous (each starts where the previous ends) with equal log-odds (exact float
+    equality, as OctoMap's ``isNodeCollapsible``). So each leaf's final depth is the
+    shallowest ancestor inside its run (a 15-level loop of comparisons); the first leaf of
+    every final node keeps it, and one compaction drops the rest.
+    """
+    cap = m.capacity
     valid = m.valid_mask()
-    at_d = valid & (m.depth == d)
-    parent = morton.truncate_words(m.code, d - 1)
-    start = at_d & (morton.child_index_words(m.code, d) == 0)
-    for k in range(1, 8):
-        same = (
-            _shift_up(at_d, k, False)
-            & morton.words_equal(_shift_up(parent, k, -1), parent)
-            & (_shift_up(m.log_odds, k, jnp.nan) == m.log_odds)
-        )
-        start = start & same
-    removed = functools.reduce(jnp.logical_or, [_shift_down(start, k, False) for k in range(1, 8)])
-    depth = jnp.where(start, d - 1, m.depth)
-    return _compact(m, valid & ~removed, depth=depth)
+    i = jnp.arange(cap, dtype=jnp.int32)
+    end = morton.end_words(m.code, m.depth)
+    prev = jnp.maximum(i - 1, 0)
+    joins_prev = (i > 0) & valid & morton.words_equal(end[prev], m.code) & (m.log_odds[prev] == m.log_odds)
+    head = jax.lax.cummax(jnp.where(joins_prev, -1, i))
+    joins_next = (i + 1 < cap) & _shift_up(joins_prev, 1, False)
+    tail = jax.lax.cummin(jnp.where(joins_next, cap, i), reverse=True)
+    run_start, run_end = m.code[head], end[tail]
+
+    def shallower(j, depth):
+        d = _D - 1 - j  # 15 .. 1; containment is monotone, so the last fit is the shallowest
+        anc = morton.truncate_words(m.code, d)
+        inside = ~morton.words_less(anc, run_start) & ~morton.words_less(run_end, morton.end_words(anc, d))
+        return jnp.where(inside & (d < depth), d, depth)
+
+    depth = jax.lax.fori_loop(0, _D - 1, shallower, m.depth)
+    keep = valid & morton.words_equal(morton.truncate_words(m.code, depth), m.code)
+    return _compact(m, keep, depth=depth)
 
 
-@jax.jit
-def _prune(m: OccupancyMap) -> OccupancyMap:
-    # Bottom-up: groups collapsed at depth d may complete a group at depth d - 1. The root
-    # (depth 0) is never created, as in OctoMap, whose prune() never prunes the root.
-    return jax.lax.fori_loop(0, _D - 1, lambda i, mm: _prune_depth(mm, _D - i), m)
+_prune = jax.jit(_prune_runs)
 
 
 def prune(m: OccupancyMap) -> OccupancyMap:

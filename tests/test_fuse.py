@@ -12,7 +12,7 @@ from hypothesis import given, settings, strategies as st
 
 from octomerge_jax import fuse as F
 from octomerge_jax import map as omap
-from octomerge_jax import morton
+from octomerge_jax import morton, tree
 
 RES = 0.1
 PARAMS = omap.OccupancyParams()
@@ -399,16 +399,13 @@ def test_against_octomap_updates():
 
 @settings(max_examples=10, deadline=None)
 @given(seed=st.integers(0, 2 ** 32 - 1))
-def test_one_pass_prune_equals_tree_prune_and_reference(seed):
-    from octomerge_jax import tree
+def test_one_pass_prune_equals_reference(seed):
 
     rng = np.random.default_rng(seed)
     roots = roots_near_origin(rng, n=3, depth=13)
     # few distinct values and mostly-split nodes: many complete equal sibling groups
     m = random_map(rng, roots, p_leaf=0.3, p_unknown=0.05, values=np.float32([0.4, -0.4]),
                    capacity=CAP_IN)
-    got = jax.jit(F._prune_runs)(m)
+    got = tree.prune(m)
     lv = m.leaves()
     assert_same_leaves(got, ref_prune(lv.codes, lv.depths, lv.log_odds))
-    want = tree.prune(m)
-    assert_same_leaves(got, (want.leaves().codes, want.leaves().depths, want.leaves().log_odds))
