@@ -8,6 +8,7 @@ fusion across depths and differentiable ICP.
 from importlib.metadata import PackageNotFoundError, version as _version
 
 from .examples import example_map
+from .fuse import FuseReport, fuse, fuse_many
 from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
 from .resample import sample, transform_map, transformed_bounds
@@ -29,6 +30,7 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0"
 
 __all__ = [
+    "FuseReport",
     "Leaves",
     "MapFormatError",
     "OccupancyMap",
@@ -40,6 +42,8 @@ __all__ = [
     "example_map",
     "expand",
     "from_bytes",
+    "fuse",
+    "fuse_many",
     "from_leaves",
     "from_message",
     "from_voxels",
