@@ -114,7 +114,5 @@ def test_manifest_on_dask_local_cluster(manifest):
         assert len(client.scheduler_info()["workers"]) == 2
     assert [r["status"] for r in rows] == ["ok", "error", "ok"]
     assert load(out / "ab.bt").num_leaves > 1000
-    local = _summary(d / "out_local") if (d / "out_local").exists() else None
-    if local is not None:  # same results as in process
-        assert rows[0]["leaves_merged"] == local[0]["leaves_merged"] or abs(
-            int(rows[0]["leaves_merged"]) - int(local[0]["leaves_merged"])) < 50
+    if (d / "out_local" / "ab.bt").exists():  # same bytes as the in-process run
+        assert (out / "ab.bt").read_bytes() == (d / "out_local" / "ab.bt").read_bytes()
