@@ -67,7 +67,7 @@ def lab_scans():
     return world, poses[:, :3, 3].astype(np.float32)
 
 
-@pytest.mark.parametrize("max_range", [-1.0, 2.5])
+@pytest.mark.parametrize("max_range", [-1.0, pytest.param(2.5, marks=pytest.mark.slow)])
 def test_matches_octomap_on_lab_scans(lab_scans, max_range):
     res = 0.05
     clouds, origins = lab_scans

@@ -134,6 +134,7 @@ def test_two_robot_ground_truth(two_maps):
     assert np.isclose(np.arctan2(T_1_2[1, 0], T_1_2[0, 0]), np.pi / 4)
 
 
+@pytest.mark.slow
 def test_two_robot_deterministic(two_maps):
     map1, map2, _ = two_maps
     again1, again2, _ = make_two_robot_maps("lab", 0.2, sensor=DepthCamera(width=32, height=24),
