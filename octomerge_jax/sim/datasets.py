@@ -51,7 +51,7 @@ def build_map(scans, poses_map_sensor, resolution: float, max_range: float = -1.
                                max_range)
 
 
-def simulate_runs(scene="lab", *, sensor=None, spacing: float = 0.35, yaw_2_rad: float = np.pi / 4,
+def simulate_runs(scene="lab", *, sensor=None, spacing: float = 0.5, yaw_2_rad: float = np.pi / 4,
                   offset_2=(1.5, -0.8, 0.0), drift_translation: float = 0.0,
                   drift_yaw_rad: float = 0.0, seed: int = 0) -> tuple[RobotRun, RobotRun, np.ndarray]:
     """Simulate the two robots' scans along the scene's paths.
@@ -60,7 +60,7 @@ def simulate_runs(scene="lab", *, sensor=None, spacing: float = 0.35, yaw_2_rad:
     ``drift_translation`` [m per m travelled] and ``drift_yaw_rad`` [rad per m] add odometry drift.
     """
     sc: Scene = make_scene(scene, seed)
-    sensor = DepthCamera(width=160, height=120) if sensor is None else sensor
+    sensor = DepthCamera(width=128, height=96) if sensor is None else sensor
     rng = np.random.default_rng(seed)
     T_1_2 = pose_from_xyz_rpy(*offset_2, 0.0, 0.0, yaw_2_rad)
     runs = []
@@ -74,7 +74,7 @@ def simulate_runs(scene="lab", *, sensor=None, spacing: float = 0.35, yaw_2_rad:
     return runs[0], runs[1], T_1_2
 
 
-def make_two_robot_maps(scene="lab", resolution: float = 0.1, *, sensor=None, spacing: float = 0.35,
+def make_two_robot_maps(scene="lab", resolution: float = 0.1, *, sensor=None, spacing: float = 0.5,
                         yaw_2_rad: float = np.pi / 4, offset_2=(1.5, -0.8, 0.0),
                         max_range: float = -1.0, drift_translation: float = 0.0,
                         drift_yaw_rad: float = 0.0, seed: int = 0,
@@ -84,7 +84,7 @@ def make_two_robot_maps(scene="lab", resolution: float = 0.1, *, sensor=None, sp
     Args:
       scene: a ``Scene`` or ``"lab"`` (thesis §7.2) / ``"office"`` (§7.1).
       resolution: voxel size [m] of both maps.
-      sensor: ``DepthCamera`` (default 160 x 120, Kinect FOV and range) or ``SpinningLidar``.
+      sensor: ``DepthCamera`` (default 128 x 96, Kinect FOV and range) or ``SpinningLidar``.
       spacing: distance between scans along each path [m].
       yaw_2_rad, offset_2: robot 2's map frame in robot 1's (thesis: pi/4 yaw).
       max_range: insertion max range [m] (< 0: none).
