@@ -620,10 +620,16 @@ def icp_trace(points_1, points_2, T_1_2_init, resolution: float, config: MergeCo
                                     rc.min_correspondence_distance, rc.shrink_factor)
     eps = resolution / 60.0 if rc.transformation_epsilon is None else rc.transformation_epsilon
     final_eps = eps * 0.01
-    src, sc = icp_mod.pad_points(np.asarray(points_2, np.float32), name="points_2")
-    tgt, tc = icp_mod.pad_points(np.asarray(points_1, np.float32), name="points_1")
+    p1 = np.asarray(points_1, np.float32).reshape(-1, 3)
+    p2 = np.asarray(points_2, np.float32).reshape(-1, 3)
+    # as registration.icp: the larger cloud is the model; the trace is inverted back
+    swap = p2.shape[0] > p1.shape[0]
+    src, sc = icp_mod.pad_points(p1 if swap else p2, name="points_2")
+    tgt, tc = icp_mod.pad_points(p2 if swap else p1, name="points_1")
     table = neighbors.level_table_sizes(tgt.shape[0], dists)
     T = np.asarray(T_1_2_init, np.float64)
+    if swap:
+        T = np.linalg.inv(T)
     Ts, rmses, inl, ds = [T], [], [], []
     stage = 0
     limit = rc.max_iterations if max_iterations is None else int(max_iterations)
@@ -649,6 +655,8 @@ def icp_trace(points_1, points_2, T_1_2_init, resolution: float, config: MergeCo
                 break
             stage += 1
     Ts = np.stack(Ts)
+    if swap:
+        Ts = np.linalg.inv(Ts)
     out = dict(T_1_2=Ts, rmse=np.asarray(rmses), num_inliers=np.asarray(inl, np.int64),
                distance=np.asarray(ds))
     if T_1_2_true is not None:

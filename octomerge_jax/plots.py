@@ -205,7 +205,7 @@ def plot_icp_convergence(trace: dict, path=None, *, title: str | None = None):
         bx.axhline(0.9, c="C1", ls=":", lw=1)
         bx.set_xlabel("iteration (0 = initial guess)")
         bx.set_yscale("log")
-        bx.set_title("error to ground truth (dotted: thesis 'coherent' limits)")
+        bx.set_title("error to ground truth\n(dotted: thesis 'coherent' limits 0.25 / 0.9)")
         bx.legend(fontsize=8)
     if title:
         fig.suptitle(title)
