@@ -10,8 +10,11 @@ from importlib.metadata import PackageNotFoundError, version as _version
 from .examples import example_map
 from .fuse import FuseReport, fuse, fuse_many
 from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
+from .insert import CapacityPlan, insert_point_cloud, insert_point_clouds
+from .io.scans import Scan, read_scan_graph, write_scan_graph
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
 from .resample import sample, transform_map, transformed_bounds
+from .sim import make_two_robot_maps
 from .tree import (
     apply_voxel_updates,
     clamp,
@@ -30,11 +33,13 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0"
 
 __all__ = [
+    "CapacityPlan",
     "FuseReport",
     "Leaves",
     "MapFormatError",
     "OccupancyMap",
     "OccupancyParams",
+    "Scan",
     "apply_voxel_updates",
     "bucket_capacity",
     "clamp",
@@ -42,15 +47,19 @@ __all__ = [
     "example_map",
     "expand",
     "from_bytes",
-    "fuse",
-    "fuse_many",
     "from_leaves",
     "from_message",
     "from_voxels",
+    "fuse",
+    "fuse_many",
+    "insert_point_cloud",
+    "insert_point_clouds",
     "load",
     "lookup",
+    "make_two_robot_maps",
     "num_nodes",
     "prune",
+    "read_scan_graph",
     "sample",
     "save",
     "to_bytes",
@@ -59,4 +68,5 @@ __all__ = [
     "transform_map",
     "transformed_bounds",
     "update_points",
+    "write_scan_graph",
 ]
