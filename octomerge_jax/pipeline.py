@@ -424,7 +424,8 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
       T_1_2_init: ``(4, 4)`` initial guess mapping map 2's frame into map 1's [m]
         (``None``: identity; see ``transform_from_xyz_rpy``).
       refine: ``"icp"``, ``"multi"`` (multi-hypothesis ICP for poor guesses) or ``"none"``.
-      overlap: ``"voxel"`` or ``"bbox"`` (thesis Alg. 2) subsets fed to ICP, or ``"none"``.
+      overlap: ``"bbox"`` (thesis Alg. 2, default) or ``"voxel"`` subsets fed to ICP, or
+        ``"none"`` (see ``config.RegistrationConfig``).
       interpolation: ``transform_map`` method (``"trilinear"``, ``"nearest"``, ``"thesis"``).
       rule: ``fuse`` rule (``"sum"``, ``"max"``, ``"weighted"``).
       T_1_2_true: ground truth ``(4, 4)``; adds thesis eqs. 7.2/7.3 errors to the report.

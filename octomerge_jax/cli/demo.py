@@ -1,8 +1,7 @@
 """``octomerge demo [--out-dir DIR]``: the main job on simulated data, end to end.
 
 Two robots map the simulated lab (boxes + fence, thesis §7.2) in frames rotated by pi/4; the
-maps are merged from an erroneous initial guess (the thesis's Fig. 7.6 case: yaw off by
-0.265 rad), and the demo writes both input maps, ``merged.bt``, ``report.json`` and the
+maps are merged from an erroneous initial guess (0.5 m and 0.05 rad off), and the demo writes both input maps, ``merged.bt``, ``report.json`` and the
 figures, and prints the thesis's errors eps_r / eps_t before and after ICP.
 """
 
@@ -40,9 +39,9 @@ def register(subparsers) -> None:
     p.add_argument("--resolution", type=float, help="voxel size [m] (default 0.1)")
     p.add_argument("--spacing", type=float, help="distance between scans [m] (default 0.5)")
     p.add_argument("--seed", type=int, help="scene/noise seed")
-    p.add_argument("--yaw-error", type=float, metavar="RAD", help="yaw error of the guess (default 0.265)")
+    p.add_argument("--yaw-error", type=float, metavar="RAD", help="yaw error of the guess (default 0.05)")
     p.add_argument("--xyz-error", type=float, nargs=3, metavar=("X", "Y", "Z"),
-                   help="translation error of the guess [m] (default 0.2 -0.1 0)")
+                   help="translation error of the guess [m] (default 0.4 -0.3 0)")
     p.add_argument("--refine", choices=("icp", "multi", "none"), help="refinement (default icp)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures (faster)")
     p.add_argument("--config", type=Path, metavar="FILE", help="TOML/JSON settings (octomerge dump-config)")

@@ -55,7 +55,7 @@ def register(subparsers) -> None:
     a = p.add_argument_group("pipeline (override --config)")
     a.add_argument("--refine", choices=("icp", "multi", "none"),
                    help="icp (default), multi (multi-hypothesis ICP for poor guesses) or none")
-    a.add_argument("--overlap", choices=("voxel", "bbox", "none"), help="points fed to ICP (default voxel)")
+    a.add_argument("--overlap", choices=("voxel", "bbox", "none"), help="points fed to ICP (default bbox, thesis Alg. 2)")
     a.add_argument("--interpolation", choices=("trilinear", "nearest", "thesis"),
                    help="resampling of map 2 (default trilinear)")
     a.add_argument("--rule", choices=("sum", "max", "weighted"), help="log-odds fusion rule (default sum)")
