@@ -11,10 +11,8 @@ from .examples import example_map
 from .fuse import FuseReport, fuse, fuse_many
 from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
 from .insert import CapacityPlan, insert_point_cloud, insert_point_clouds
-from .io.scans import Scan, read_scan_graph, write_scan_graph
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
 from .resample import sample, transform_map, transformed_bounds
-from .sim import make_two_robot_maps
 from .tree import (
     apply_voxel_updates,
     clamp,
@@ -26,6 +24,23 @@ from .tree import (
     to_max_likelihood,
     update_points,
 )
+
+# Heavier parts (trimesh scenes, scan readers) load on first use, keeping `import` fast.
+_LAZY = {
+    "make_two_robot_maps": "octomerge_jax.sim",
+    "Scan": "octomerge_jax.io.scans",
+    "read_scan_graph": "octomerge_jax.io.scans",
+    "write_scan_graph": "octomerge_jax.io.scans",
+}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'octomerge_jax' has no attribute {name!r}")
+
 
 try:
     __version__ = _version("octomerge_jax")
