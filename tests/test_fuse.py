@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from octomerge_jax import fuse as F
+import importlib
+
+F = importlib.import_module("octomerge_jax.fuse")  # the package re-exports the function `fuse`
 from octomerge_jax import map as omap
 from octomerge_jax import morton, tree
 

@@ -2,9 +2,10 @@
 overlap extraction, jitted/differentiable point-to-point ICP, rendezvous initial estimates,
 error metrics and rigid-transform helpers."""
 
-from . import icp  # a callable module: registration.icp(...) runs ICP, registration.icp.X reaches X
-from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp_multi, icp_padded, pad_points,
-                  stage_distances)
+# ``registration.icp`` is the function; reach the module as ``octomerge_jax.registration.icp``
+# through ``importlib.import_module`` (the function shadows the module attribute).
+from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
+                  pad_points, stage_distances)
 from .metrics import rotation_angle_error, rotation_error, translation_distance, translation_error
 from .neighbors import HashGrid, any_within, build_grid, build_grids, nearest
 from .overlap import Overlap, overlap

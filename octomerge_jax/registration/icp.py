@@ -52,8 +52,6 @@ Status codes (``IcpResult.status``): 0 converged, 1 max_iterations reached, 2 to
 from __future__ import annotations
 
 import dataclasses
-import sys
-import types
 from functools import partial
 
 import jax
@@ -488,14 +486,3 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
         out = IcpMultiResult(_invert_result(out.best), _invert_result(out.candidates), out.best_index,
                              out.scores, rigid.inverse(out.hypotheses))
     return out
-
-
-class _CallableModule(types.ModuleType):
-    """``registration.icp`` is both this module (``registration.icp.icp_padded``, ...) and
-    the function (``registration.icp(source, target, T)``): calling the module calls ``icp``."""
-
-    def __call__(self, *args, **kwargs):
-        return icp(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule
