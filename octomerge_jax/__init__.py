@@ -12,6 +12,17 @@ from .fuse import FuseReport, fuse, fuse_many
 from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
 from .insert import CapacityPlan, insert_point_cloud, insert_point_clouds
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
+from .registration import (
+    IcpResult,
+    from_xyz_rpy,
+    icp,
+    icp_multi,
+    occupied_points,
+    overlap,
+    rendezvous_transform,
+    rotation_error,
+    translation_error,
+)
 from .resample import sample, transform_map, transformed_bounds
 from .tree import (
     apply_voxel_updates,
@@ -50,6 +61,7 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 __all__ = [
     "CapacityPlan",
     "FuseReport",
+    "IcpResult",
     "Leaves",
     "MapFormatError",
     "OccupancyMap",
@@ -65,16 +77,23 @@ __all__ = [
     "from_leaves",
     "from_message",
     "from_voxels",
+    "from_xyz_rpy",
     "fuse",
     "fuse_many",
+    "icp",
+    "icp_multi",
     "insert_point_cloud",
     "insert_point_clouds",
     "load",
     "lookup",
     "make_two_robot_maps",
     "num_nodes",
+    "occupied_points",
+    "overlap",
     "prune",
     "read_scan_graph",
+    "rendezvous_transform",
+    "rotation_error",
     "sample",
     "save",
     "to_bytes",
@@ -82,6 +101,7 @@ __all__ = [
     "to_message_fields",
     "transform_map",
     "transformed_bounds",
+    "translation_error",
     "update_points",
     "write_scan_graph",
 ]
