@@ -8,7 +8,6 @@ simulator (``octomerge_jax.sim``) ray casts far too slowly for a < 60 s test bud
 
 from __future__ import annotations
 
-import functools
 
 import jax
 import jax.numpy as jnp
