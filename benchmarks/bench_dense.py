@@ -22,7 +22,7 @@ import jax
 import numpy as np
 
 from octomerge_jax import tree
-from octomerge_jax.registration import dense, icp, metrics
+from octomerge_jax.registration import dense, icp_multi, metrics
 from octomerge_jax.registration._testing import surface_samples, xyz_rpy64
 
 T_TRUE = xyz_rpy64(1.0, -0.5, 0.0, 0.0, 0.0, np.pi / 4)
@@ -99,7 +99,7 @@ def accuracy_table(res, max_points):
     src, tgt = occ(m2), occ(m1)
     T_inits = np.stack([guess(e) for e in TABLE_7_1])
     t = time.perf_counter()
-    icp_res = jax.block_until_ready(icp.icp_multi(src, tgt, T_inits[0], hypotheses=T_inits,
+    icp_res = jax.block_until_ready(icp_multi(src, tgt, T_inits[0], hypotheses=T_inits,
                                                   resolution=res, swap_larger=False).candidates)
     t_icp = time.perf_counter() - t
     problem = dense.prepare_alignment(m1, m2, max_points=max_points)
