@@ -13,6 +13,9 @@ from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, 
 from .insert import CapacityPlan, insert_point_cloud, insert_point_clouds
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
 from .registration import (
+    AlignResult,
+    align_dense,
+    alignment_loss,
     IcpResult,
     from_xyz_rpy,
     icp,
@@ -59,6 +62,7 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0"
 
 __all__ = [
+    "AlignResult",
     "CapacityPlan",
     "FuseReport",
     "IcpResult",
@@ -67,6 +71,8 @@ __all__ = [
     "OccupancyMap",
     "OccupancyParams",
     "Scan",
+    "align_dense",
+    "alignment_loss",
     "apply_voxel_updates",
     "bucket_capacity",
     "clamp",

@@ -4,6 +4,10 @@ error metrics and rigid-transform helpers."""
 
 # ``registration.icp`` is the function; reach the module as ``octomerge_jax.registration.icp``
 # through ``importlib.import_module`` (the function shadows the module attribute).
+from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result,
+                    default_levels, fused_log_odds, pose_from_increment, prepare_alignment,
+                    problem_loss, solve_alignment, solve_alignment_batch, stack_problems,
+                    transformed_occupancy)
 from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
                   pad_points, stage_distances)
 from .metrics import rotation_angle_error, rotation_error, translation_distance, translation_error
@@ -15,6 +19,9 @@ from .rendezvous import (lift_2d, relative_pose_2d, relative_pose_3d, rendezvous
 from .rigid import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quaternion, to_xyz_rpy, transform_points
 
 __all__ = [
+    "AlignProblem", "AlignResult", "align_dense", "alignment_loss", "best_result", "default_levels",
+    "fused_log_odds", "pose_from_increment", "prepare_alignment", "problem_loss",
+    "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
     "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded",
     "pad_points", "stage_distances", "rotation_angle_error", "rotation_error",
     "translation_distance", "translation_error", "HashGrid", "any_within", "build_grid",
