@@ -7,11 +7,14 @@ fusion across depths and differentiable ICP.
 
 from importlib.metadata import PackageNotFoundError, version as _version
 
+from .batch import BatchResult, merge_batch
+from .config import MergeConfig, load_config
 from .examples import example_map
 from .fuse import FuseReport, fuse, fuse_many
 from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
 from .insert import CapacityPlan, insert_point_cloud, insert_point_clouds
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
+from .pipeline import MergeError, MergeReport, merge, merge_many
 from .registration import (
     AlignResult,
     align_dense,
@@ -63,11 +66,15 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 
 __all__ = [
     "AlignResult",
+    "BatchResult",
     "CapacityPlan",
     "FuseReport",
     "IcpResult",
     "Leaves",
     "MapFormatError",
+    "MergeConfig",
+    "MergeError",
+    "MergeReport",
     "OccupancyMap",
     "OccupancyParams",
     "Scan",
@@ -91,8 +98,12 @@ __all__ = [
     "insert_point_cloud",
     "insert_point_clouds",
     "load",
+    "load_config",
     "lookup",
     "make_two_robot_maps",
+    "merge",
+    "merge_batch",
+    "merge_many",
     "num_nodes",
     "occupied_points",
     "overlap",

@@ -84,6 +84,19 @@ def _as_pair(p, i):
     raise ValueError(f"pairs[{i}]: expected (m1, m2[, T_1_2_init[, T_1_2_true]]), got {len(p)} items")
 
 
+def _merge_one(p, i, cfg) -> BatchResult:
+    from .pipeline import MergeError, merge
+
+    try:
+        m1, m2, T_init, T_true = _as_pair(p, i)
+        merged, report = merge(m1, m2, T_init, T_1_2_true=T_true, config=cfg)
+        return BatchResult("ok", merged, report)
+    except MergeError as err:
+        return BatchResult("error", message=str(err), kind=getattr(err, "kind", "error"))
+    except ValueError as err:
+        return BatchResult("error", message=str(err), kind="input")
+
+
 def _stack(trees):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
 
@@ -104,6 +117,8 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
 
     cfg = MergeConfig() if config is None else config
     rc = cfg.registration
+    if rc.refine in ("dense", "icp+dense"):  # the dense solver runs per pair (vmapped inside)
+        return [_merge_one(p, i, cfg) for i, p in enumerate(pairs)]
     n = len(pairs)
     results: list[BatchResult | None] = [None] * n
     state = {}

@@ -42,7 +42,7 @@ __all__ = [
     "save_config",
 ]
 
-REFINE_CHOICES = ("icp", "multi", "none")
+REFINE_CHOICES = ("icp", "multi", "none", "dense", "icp+dense")
 OVERLAP_CHOICES = ("voxel", "bbox", "none")
 ON_NOT_CONVERGED_CHOICES = ("warn", "error", "use_initial")
 

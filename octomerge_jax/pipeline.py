@@ -358,6 +358,9 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
     counts["occupied_1"], counts["occupied_2"] = int(p1.shape[0]), int(p2.shape[0])
     if rc.refine == "none":
         return T_1_2_init, None, None, counts, p1, p2
+    if rc.refine == "dense":  # gradient-based alignment of the occupancy fields only
+        T_1_2, info, result = _refine_dense(m1, m2, T_1_2_init, timings, warnings)
+        return T_1_2, info, result, counts, p1, p2
     for name, p in (("map 1", p1), ("map 2", p2)):
         if p.shape[0] < rc.min_overlap_points:
             raise MergeError(f"{name} has only {p.shape[0]} occupied voxels: nothing to register "
@@ -401,6 +404,9 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
             T_1_2 = np.asarray(T_1_2_init, np.float64)
         else:
             warnings.append(msg + "; its last transform is used")
+    if rc.refine == "icp+dense":  # ICP, then the dense alignment from its result
+        T_1_2, dense_info, _ = _refine_dense(m1, m2, T_1_2, timings, warnings)
+        info = {**info, "dense": dense_info}
     # re-orthonormalise (float32 ICP output) so transform_map's rigidity check passes
     U, _, Vt = np.linalg.svd(T_1_2[:3, :3])
     R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
@@ -408,6 +414,23 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
     T_1_2[:3, :3] = R
     T_1_2[3] = (0.0, 0.0, 0.0, 1.0)
     return T_1_2, info, result, counts, q1, q2
+
+
+def _refine_dense(m1, m2, T_start, timings: dict, warnings: list):
+    """``registration.align_dense`` from ``T_start``: ``(T_1_2, info dict, AlignResult)``.
+
+    Its result is used when it converged or ran out of iterations (status 0 / 1); on poor
+    agreement, too little overlap or non-finite values the start transform is kept."""
+    r = _timed(timings, "dense", _reg().align_dense, m1, m2, np.asarray(T_start, np.float64))
+    status = int(r.status)
+    info = {"status": status, "converged": status == 0,
+            "agreement": float(np.asarray(r.agreement)), "loss": float(np.asarray(r.loss)),
+            "num_iterations": int(np.asarray(r.num_iterations))}
+    if status in (0, 1):
+        return np.asarray(r.T_1_2, np.float64), info, r
+    warnings.append(f"dense alignment failed (status {status}, agreement {info['agreement']:.2f}); "
+                    "the previous transform is kept")
+    return np.asarray(T_start, np.float64), info, r
 
 
 # ----------------------------------------------------------------------------- merge
@@ -423,7 +446,9 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
         unless ``resample=True``, which resamples ``m2`` onto ``m1``'s grid first).
       T_1_2_init: ``(4, 4)`` initial guess mapping map 2's frame into map 1's [m]
         (``None``: identity; see ``transform_from_xyz_rpy``).
-      refine: ``"icp"``, ``"multi"`` (multi-hypothesis ICP for poor guesses) or ``"none"``.
+      refine: ``"icp"``, ``"multi"`` (multi-hypothesis ICP for poor guesses), ``"dense"``
+        (``align_dense``: gradient-based alignment of the occupancy fields), ``"icp+dense"``
+        or ``"none"``.
       overlap: ``"bbox"`` (thesis Alg. 2, default) or ``"voxel"`` subsets fed to ICP, or
         ``"none"`` (see ``config.RegistrationConfig``).
       interpolation: ``transform_map`` method (``"trilinear"``, ``"nearest"``, ``"thesis"``).

@@ -117,11 +117,11 @@ def test_update_inside_a_coarse_leaf_expands_locally():
 @given(st.integers(0, 10_000))
 def test_prune_expand_properties(seed):
     codes, depths, lo = random_leaves(seed, n_cells=3)
-    m = om.from_leaves(codes, depths, lo, RES, capacity=4096)  # fixed buckets: compile once
+    m = om.from_leaves(codes, depths, lo, RES, capacity=8192)  # fixed buckets: compile once
     pruned = tree.prune(m)
     assert_maximally_pruned(pruned)
     assert expanded_dict(pruned) == expanded_dict(m)
-    expanded = tree.expand(m, capacity=16384)
+    expanded = tree.expand(m, capacity=32768)
     assert set(np.asarray(expanded.depth[: expanded.num_leaves]).tolist()) <= {16}
     assert tree.equal(tree.prune(expanded), pruned)
     # padding never changes a result

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ..config import REFINE_CHOICES
+
 import argparse
 from pathlib import Path
 
@@ -42,7 +44,7 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, metavar="N", help="local Dask worker processes (0: in this process)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler, e.g. tcp://host:8786")
     p.add_argument("--no-resume", action="store_true", help="redo pairs whose output exists")
-    p.add_argument("--refine", choices=("icp", "multi", "none"))
+    p.add_argument("--refine", choices=REFINE_CHOICES)
     p.add_argument("--config", type=Path, metavar="FILE", help="TOML/JSON settings (octomerge dump-config)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

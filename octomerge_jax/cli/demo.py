@@ -7,6 +7,8 @@ figures, and prints the thesis's errors eps_r / eps_t before and after ICP.
 
 from __future__ import annotations
 
+from ..config import REFINE_CHOICES
+
 import argparse
 import time
 from pathlib import Path
@@ -42,7 +44,7 @@ def register(subparsers) -> None:
     p.add_argument("--yaw-error", type=float, metavar="RAD", help="yaw error of the guess (default 0.05)")
     p.add_argument("--xyz-error", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="translation error of the guess [m] (default 0.4 -0.3 0)")
-    p.add_argument("--refine", choices=("icp", "multi", "none"), help="refinement (default icp)")
+    p.add_argument("--refine", choices=REFINE_CHOICES, help="refinement (default icp)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures (faster)")
     p.add_argument("--config", type=Path, metavar="FILE", help="TOML/JSON settings (octomerge dump-config)")
     p.set_defaults(func=run)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ..config import REFINE_CHOICES
+
 import argparse
 import math
 import sys
@@ -53,7 +55,7 @@ def register(subparsers) -> None:
                    help="ground truth translation: report thesis errors eps_r/eps_t")
     g.add_argument("--true-rpy", type=float, nargs=3, metavar=("R", "P", "Y"), help="ground truth rotation")
     a = p.add_argument_group("pipeline (override --config)")
-    a.add_argument("--refine", choices=("icp", "multi", "none"),
+    a.add_argument("--refine", choices=REFINE_CHOICES,
                    help="icp (default), multi (multi-hypothesis ICP for poor guesses) or none")
     a.add_argument("--overlap", choices=("voxel", "bbox", "none"), help="points fed to ICP (default bbox, thesis Alg. 2)")
     a.add_argument("--interpolation", choices=("trilinear", "nearest", "thesis"),
