@@ -223,20 +223,13 @@ def dataclass_replace(m: OccupancyMap, **changes) -> OccupancyMap:
 
 def num_nodes(m: OccupancyMap) -> int:
     """Number of nodes OctoMap's ``size()`` reports for the same tree: the leaves plus every
-    distinct inner node (all ancestors of the leaves, root included). 0 for an empty map."""
+    distinct inner node (all ancestors of the leaves, root included). 0 for an empty map.
+    Host-side, one pass over the sorted leaves (the count the file writers put in headers)."""
+    from .io import _preorder
+
     n = m.num_leaves
-    if n == 0:
-        return 0
     codes = morton.join_codes(np.asarray(m.code)[:n])
-    depths = np.asarray(m.depth)[:n].astype(np.int64)
-    total = n
-    for a in range(_D):
-        sel = depths > a
-        if not sel.any():
-            break
-        anc = codes[sel] >> np.uint64(3 * (_D - a))
-        total += int(1 + np.count_nonzero(anc[1:] != anc[:-1]))
-    return total
+    return _preorder.num_nodes(codes, np.asarray(m.depth)[:n])
 
 
 # ----------------------------------------------------------------------------- voxel updates

@@ -70,6 +70,7 @@ from .. import morton
 from .._fileutil import atomic_output
 from . import _preorder
 from .errors import MapFormatError
+from ..tree import num_nodes as _tree_num_nodes
 
 __all__ = [
     "BINARY_FILE_HEADER",
@@ -614,8 +615,4 @@ def to_message_fields(occupancy_map: _map.OccupancyMap, binary: bool = True) -> 
             "data": array.array("b", payload)}
 
 
-def num_nodes(occupancy_map: _map.OccupancyMap) -> int:
-    """OctoMap ``size()`` of the tree holding exactly this map's leaves (inner nodes and
-    root included; 0 for an empty map). Host-side; ``tree.num_nodes`` is the jitted one."""
-    codes, depths, _ = _host_leaves(occupancy_map)
-    return _preorder.num_nodes(codes, depths)
+num_nodes = _tree_num_nodes  # one implementation, shared with ``tree.num_nodes``
