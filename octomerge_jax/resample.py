@@ -66,7 +66,6 @@ _B = 8
 _BV = 512
 _KEY_MAX = 2 * morton.KEY_OFFSET
 _SNAP = 1e-5  # offsets closer than this (in voxels) to a lattice point are snapped (transform_map)
-_RIGID_TOL = 1e-5
 
 # corner c = bx + 2 by + 4 bz (x lowest, as OctoMap's child index); offset (bx, by, bz)
 _CORNERS = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.int32)
@@ -89,29 +88,23 @@ _LOCAL = _local_offsets()
 
 
 def check_rigid_transform(T, name: str = "T_dst_src") -> np.ndarray:
-    """Validate a rigid transform and return it as a ``(4, 4)`` float64 array.
+    """Validate one rigid transform and return it as a ``(4, 4)`` float64 array.
 
     Accepts ``(4, 4)`` homogeneous or ``(3, 4)`` ``[R | t]`` matrices (translation in metres).
-    Raises ``ValueError`` naming ``name`` if it has another shape, a NaN or infinite entry, a
-    homogeneous row other than ``[0, 0, 0, 1]``, or a rotation block that is not orthonormal
-    with determinant +1 (tolerance 1e-5: scale, shear and reflections are rejected).
+    A thin adapter over ``registration.rigid.check_rigid`` (the one implementation; tolerance
+    1e-4): raises ``ValueError`` naming ``name`` for another shape (including a batch), a NaN
+    or infinite entry, a homogeneous row other than ``[0, 0, 0, 1]``, or a rotation block that
+    is not orthonormal with determinant +1 (scale, shear and reflections are rejected). The
+    returned homogeneous row is exactly ``[0, 0, 0, 1]``.
     """
+    from .registration.rigid import check_rigid  # registration imports this module
+
     A = np.asarray(T, dtype=np.float64)
     if A.shape == (3, 4):
         A = np.vstack([A, [0.0, 0.0, 0.0, 1.0]])
     if A.shape != (4, 4):
         raise ValueError(f"{name}: expected a (4, 4) or (3, 4) rigid transform, got shape {A.shape}")
-    if not np.all(np.isfinite(A)):
-        raise ValueError(f"{name}: contains NaN or infinite entries: {A.tolist()}")
-    if not np.allclose(A[3], [0.0, 0.0, 0.0, 1.0], atol=_RIGID_TOL, rtol=0.0):
-        raise ValueError(f"{name}: last row must be [0, 0, 0, 1], got {A[3].tolist()}")
-    R = A[:3, :3]
-    err = float(np.abs(R.T @ R - np.eye(3)).max())
-    det = float(np.linalg.det(R))
-    if err > _RIGID_TOL or abs(det - 1.0) > _RIGID_TOL:
-        raise ValueError(
-            f"{name}: rotation block is not a proper rotation (max |R^T R - I| = {err:.3g}, "
-            f"det = {det:.6g}); only rigid transforms are supported (no scale, shear or mirror)")
+    A = check_rigid(A, name).copy()
     A[3] = [0.0, 0.0, 0.0, 1.0]
     return A
 
@@ -149,17 +142,28 @@ def _logit(p):
 
 
 def _corner_weights(f):
-    """Trilinear weights (eqs. 3.6-3.13) of the 8 corners, ``f (..., 3)`` -> ``(..., 8)``."""
-    w1 = jnp.stack([1.0 - f, f], axis=-1)  # (..., 3, 2)
-    wx, wy, wz = w1[..., 0, :], w1[..., 1, :], w1[..., 2, :]
-    w = wz[..., :, None, None] * wy[..., None, :, None] * wx[..., None, None, :]
-    return w.reshape(f.shape[:-1] + (8,))
+    """Trilinear weights (eqs. 3.6-3.13) of the 8 corners: offsets ``f = (fx, fy, fz)``
+    (arrays of one shape) -> list of 8 arrays, corner ``c = bx + 2 by + 4 bz``."""
+    w1 = [(1.0 - a, a) for a in f]
+    return [w1[2][c >> 2] * w1[1][(c >> 1) & 1] * w1[0][c & 1] for c in range(8)]
 
 
-def _center_corner(f):
-    """Index (0..7) of the corner whose voxel contains the sample point (nearest centre)."""
-    b = (f >= 0.5).astype(jnp.int32)
-    return b[..., 0] + 2 * b[..., 1] + 4 * b[..., 2]
+def _select_corner(f, vals):
+    """Value at the corner whose voxel contains the sample point (nearest centre): a binary
+    select tree over the 8 corner arrays ``vals`` (no gather)."""
+    bits = [a >= 0.5 for a in f]
+    v = list(vals)
+    for axis in range(3):  # x pairs (c, c+1), then y, then z
+        v = [jnp.where(bits[axis], v[i + 1], v[i]) for i in range(0, len(v), 2)]
+    return v[0]
+
+
+def _sum8(terms):
+    """Pairwise sum of 8 arrays."""
+    t = list(terms)
+    while len(t) > 1:
+        t = [t[i] + t[i + 1] for i in range(0, len(t), 2)]
+    return t[0]
 
 
 def _mode_index(method: str, space: str) -> int:
@@ -170,8 +174,9 @@ def _mode_index(method: str, space: str) -> int:
 
 
 def _blend(lo8, known8, f, mode):
-    """Interpolate 8 neighbour log-odds ``lo8 (..., 8)`` (``known8`` marks known ones) at
-    offsets ``f (..., 3)`` in [0, 1) from corner 0 (eqs. 3.6-3.13).
+    """Interpolate 8 neighbour log-odds at offsets ``f = (fx, fy, fz)`` in [0, 1) from
+    corner 0 (eqs. 3.6-3.13). ``lo8``, ``known8``: lists of 8 arrays (corner
+    ``c = bx + 2 by + 4 bz``) of the shape of ``fx``.
 
     ``mode`` (traced int, ``_mode_index``): 0 trilinear in probability, 1 trilinear in
     log-odds (both leave unknown neighbours out and renormalise), 2 nearest, 3 thesis (unknown
@@ -180,40 +185,30 @@ def _blend(lo8, known8, f, mode):
     containing the point is known (thesis: only then is a destination voxel made) and
     ``exact``, the log-odds to use where every contributing neighbour holds the same value
     (NaN elsewhere) so such values stay bit-exact.
+
+    Per-corner arrays (not a trailing axis of 8) and one formula for all modes selected by
+    ``where`` (not ``lax.switch``) let XLA fuse the whole blend into one vectorised loop.
     """
-    lo8 = jnp.where(known8, lo8, jnp.float32(0))
+    zero = jnp.float32(0)
+    lo8 = [jnp.where(k, l, zero) for l, k in zip(lo8, known8)]
     w = _corner_weights(f)
-    cc = _center_corner(f)
-    pick = cc[..., None] == jnp.arange(8, dtype=jnp.int32)  # one-hot select (no gather)
-    lo_c = jnp.sum(jnp.where(pick, lo8, jnp.float32(0)), axis=-1)
-    k_c = jnp.any(pick & known8, axis=-1)
-    contributes = w > 0
-
-    def trilinear(in_log_odds):
-        def branch():
-            wk = jnp.where(known8, w, jnp.float32(0))
-            den = jnp.sum(wk, axis=-1)
-            ok = den > 0
-            safe = jnp.where(ok, den, jnp.float32(1))
-            if in_log_odds:
-                lo = jnp.where(ok, jnp.sum(wk * lo8, axis=-1) / safe, jnp.float32(0))
-                p = _probability(lo)
-            else:
-                p = jnp.where(ok, jnp.sum(wk * _probability(lo8), axis=-1) / safe, jnp.float32(0.5))
-                lo = _safe_logit(p)
-            same = jnp.all(~(contributes & known8) | (lo8 == lo_c[..., None]), axis=-1)
-            return p, lo, jnp.where(same, lo_c, jnp.nan)
-        return branch
-
-    def nearest():
-        return _probability(lo_c), lo_c, lo_c
-
-    def thesis():
-        p = jnp.sum(w * jnp.where(known8, _probability(lo8), jnp.float32(0)), axis=-1)
-        same = jnp.all(~contributes | (known8 & (lo8 == lo_c[..., None])), axis=-1)
-        return p, _safe_logit(p), jnp.where(same, lo_c, jnp.nan)
-
-    p, lo, exact = jax.lax.switch(mode, [trilinear(False), trilinear(True), nearest, thesis])
+    lo_c = _select_corner(f, lo8)
+    k_c = _select_corner(f, known8)
+    wk = [jnp.where(k, wc, zero) for wc, k in zip(w, known8)]
+    num_p = _sum8([a * _probability(b) for a, b in zip(wk, lo8)])  # unknown: p = 0 (thesis)
+    num_l = _sum8([a * b for a, b in zip(wk, lo8)])
+    den = _sum8(wk)
+    ok = den > 0
+    safe = jnp.where(ok, den, jnp.float32(1))
+    tri_p = jnp.where(ok, num_p / safe, jnp.float32(0.5))
+    tri_l = jnp.where(ok, num_l / safe, zero)
+    is_thesis = mode == 3
+    p = jnp.where(mode == 0, tri_p, jnp.where(is_thesis, num_p, _probability(jnp.where(mode == 1, tri_l, lo_c))))
+    lo = jnp.where(mode == 1, tri_l, jnp.where(mode == 2, lo_c, _safe_logit(p)))
+    # Every contributing neighbour equal to the centre one (thesis: and known).
+    same = functools.reduce(jnp.logical_and, [
+        (wc <= 0) | (k & (l == lo_c)) | (~k & ~is_thesis) for wc, k, l in zip(w, known8, lo8)])
+    exact = jnp.where(same | (mode == 2), lo_c, jnp.nan)
     return p, lo, k_c, jnp.where(k_c, exact, jnp.nan)
 
 
@@ -259,7 +254,9 @@ def _sample(m: OccupancyMap, points, mode, log_odds_out):
     keys = key0[..., None, :] + jnp.asarray(_CORNERS)
     lo8, known8 = _lookup_keys(m, keys)
     known8 = known8 & finite[..., None]
-    p, lo, center_known, _ = _blend(lo8, known8, f, mode)
+    p, lo, center_known, _ = _blend([lo8[..., c] for c in range(8)],
+                                    [known8[..., c] for c in range(8)],
+                                    (f[..., 0], f[..., 1], f[..., 2]), mode)
     return jnp.where(log_odds_out, lo, p), center_known
 
 
@@ -290,22 +287,23 @@ def sample(m: OccupancyMap, points, *, space: str = "probability", method: str =
 # ----------------------------------------------------------------------------- source view
 
 
-def _source_table(m: OccupancyMap):
+def _source_view(m: OccupancyMap):
     """Host: the brick-indexed view of the source.
 
-    Returns ``(table (rows * 512,) float32, rowtab (C,) int32, nan_row)``. ``table`` holds,
-    in local Morton order, one dense row per brick that contains leaves finer than a brick
-    (NaN = unknown), then one constant row per distinct value of the leaves that cover whole
-    bricks (depth <= 13), then NaN rows. ``rowtab[i]`` is the table row of leaf ``i``: its
-    brick's dense row, or its value's constant row. Memory: 2 KiB per dense brick.
+    Returns ``(table (rows * 512,) float32, bricks (n, 3) int64, brick_rows (n,) int32,
+    nan_row, n_dense)``. ``table`` holds, in local Morton order, one dense row per brick that
+    contains leaves finer than a brick (NaN = unknown; ``n_dense`` rows), then one constant
+    row per distinct value of the leaves that cover whole bricks (depth <= 13), then NaN rows
+    (the first is ``nan_row``). ``bricks`` lists the key (finest key >> 3) of every brick a
+    leaf covers and ``brick_rows`` its table row. Memory: 2 KiB per dense brick.
     """
-    n, cap = m.num_leaves, m.capacity
+    n = m.num_leaves
     codes = morton.join_codes(np.asarray(m.code[:n]))
     depth = np.asarray(m.depth[:n])
     lo = np.asarray(m.log_odds[:n])
     fine = depth > _BRICK_DEPTH
     c, d, v = codes[fine], depth[fine], lo[fine]
-    bcode = c & ~np.uint64(_BV - 1)
+    bcode = c >> np.uint64(9)  # leaves are Morton-sorted, so a brick's leaves are contiguous
     first = np.ones(bcode.shape, bool)
     first[1:] = bcode[1:] != bcode[:-1]
     n_db = int(first.sum())
@@ -321,34 +319,23 @@ def _source_table(m: OccupancyMap):
             view = table[:n_db].reshape(n_db * (_BV // span), span)
             view[slot[sel] * (_BV // span) + local[sel] // span] = v[sel, None]
     table[n_db:n_db + uniq.size] = uniq[:, None]
-    nan_row = n_db + uniq.size
-    rowtab = np.full(cap, nan_row, np.int32)
-    idx = np.arange(n)
-    rowtab[idx[fine]] = slot
-    rowtab[idx[~fine]] = n_db + inv.reshape(-1)
-    return table.reshape(-1), rowtab, nan_row, n_db
+    keys = [morton.codes_to_keys(c[first]).astype(np.int64) >> 3]
+    brick_rows = [np.arange(n_db, dtype=np.int32)]
+    ck, cd, crow = codes[~fine], depth[~fine], n_db + inv.reshape(-1).astype(np.int32)
+    for dl in np.unique(cd):  # a depth-d leaf covers 8^(13 - d) bricks
+        sel = cd == dl
+        w = 1 << (_BRICK_DEPTH - int(dl))
+        g = np.stack(np.meshgrid(*[np.arange(w)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        base = morton.codes_to_keys(ck[sel]).astype(np.int64) >> 3
+        keys.append((base[:, None, :] + g[None]).reshape(-1, 3))
+        brick_rows.append(np.repeat(crow[sel], g.shape[0]))
+    return (table.reshape(-1), np.concatenate(keys), np.concatenate(brick_rows),
+            n_db + uniq.size, n_db)
 
 
-def _source_brick_keys(m: OccupancyMap) -> np.ndarray:
-    """Host: ``(n, 3)`` int64 brick keys (finest key >> 3) of every brick a leaf covers."""
-    lv_keys = np.asarray(morton.codes_to_keys(morton.join_codes(np.asarray(m.code[:m.num_leaves]))))
-    depth = np.asarray(m.depth[:m.num_leaves])
-    bkeys = lv_keys.astype(np.int64) >> 3
-    parts = []
-    fine = depth >= _BRICK_DEPTH
-    if fine.any():
-        parts.append(_unique_rows(bkeys[fine]))
-    for d in np.unique(depth[~fine]):
-        w = 1 << (_BRICK_DEPTH - int(d))
-        g = np.stack(np.meshgrid(np.arange(w), np.arange(w), np.arange(w), indexing="ij"), -1).reshape(-1, 3)
-        parts.append((bkeys[depth == d][:, None, :] + g[None]).reshape(-1, 3))
-    return np.concatenate(parts, axis=0) if parts else np.zeros((0, 3), np.int64)
-
-
-def _unique_rows(k: np.ndarray) -> np.ndarray:
-    lin = (k[:, 0] << 26) | (k[:, 1] << 13) | k[:, 2]
-    u = np.unique(lin)
-    return np.stack([u >> 26, (u >> 13) & 8191, u & 8191], axis=-1)
+def _brick_lin(k):
+    """Brick keys ``(..., 3)`` (each in ``[0, 8192)``) -> one int64 per brick."""
+    return (k[..., 0] << 26) | (k[..., 1] << 13) | k[..., 2]
 
 
 def _plan_dest_bricks(src_bkeys: np.ndarray, T_key) -> np.ndarray:
@@ -395,60 +382,90 @@ def _spread3bits(v):
     return (v & 1) | ((v & 2) << 2) | ((v & 4) << 4)
 
 
-def _window_rows(m, rowtab, nan_row, wb):
-    """Table rows of the 27 source bricks of each destination brick's window (min-corner
-    brick keys ``wb (B, 3)``): ``(B, 27)`` int32, one ``searchsorted`` per window brick.
+_WINDOW_MARGIN = 0.05  # voxels; covers float32 rounding of the kernel's inverse map
 
-    The first leaf at or after the brick's min corner either starts inside the brick (the
-    brick is dense, or it is that whole-brick leaf) or the previous leaf contains the brick
-    (a coarser leaf); otherwise the brick is unknown.
+
+def _dest_windows(dest, R, t_key, bricks, brick_rows, nan_row):
+    """Host: each destination brick's source window, 3x3x3 source bricks from ``wb``.
+
+    ``dest (n, 3)`` destination brick keys; ``R, t_key`` the forward map in key units;
+    ``bricks``/``brick_rows`` the source bricks and their table rows. Returns ``(wb (n, 3)
+    int64, rows (n, 27) int32)``, window brick ``x + 3 y + 9 z`` -> table row (``nan_row``
+    where no leaf covers it). Every neighbour key ``k0 + {0, 1}`` of every voxel lies in the
+    window: the inverse image of a brick's centres spans <= 7 sqrt(3) < 12.2 voxels per axis,
+    so with the margin the neighbours span <= 15 keys from at most 7 into the first brick.
     """
-    bkeys = wb[:, None, :] + jnp.asarray(_CORNERS_27, jnp.int32)
-    in_range = jnp.all((bkeys >= 0) & (bkeys < _KEY_MAX // _B), axis=-1)
-    q = morton.keys_to_words(jnp.clip(bkeys, 0, _KEY_MAX // _B - 1) * _B)
-    k = morton.searchsorted_words(m.code, q, side="left")
-    kc = jnp.clip(k, 0, m.capacity - 1)
-    starts_inside = (k < m.count) & morton.words_equal(
-        morton.truncate_words(m.code[kc], _BRICK_DEPTH), q)
-    kp = jnp.clip(k - 1, 0, m.capacity - 1)
-    covered = (k >= 1) & morton.words_equal(morton.truncate_words(q, m.depth[kp]), m.code[kp])
-    row = jnp.where(starts_inside, rowtab[kc], jnp.where(covered, rowtab[kp], nan_row))
-    return jnp.where(in_range, row, nan_row)
+    n = dest.shape[0]
+    if n == 0:
+        return np.zeros((0, 3), np.int64), np.zeros((0, 27), np.int32)
+    umin = np.full((n, 3), np.inf)
+    for corner in _CORNERS:  # the extremes of an affine map over a cube are at its corners
+        k = (dest * _B + 7 * corner).astype(np.float64)
+        umin = np.minimum(umin, (k - t_key) @ R)  # R^T (k - t_key), row-wise
+    wb = np.floor_divide(np.floor(umin - _WINDOW_MARGIN).astype(np.int64), _B)
+    order = np.argsort(_brick_lin(bricks))
+    lin_sorted = _brick_lin(bricks)[order]
+    rows_sorted = brick_rows[order]
+    q = wb[:, None, :] + _CORNERS_27[None]  # (n, 27, 3)
+    in_range = np.all((q >= 0) & (q < _KEY_MAX // _B), axis=-1)
+    lin = _brick_lin(np.clip(q, 0, _KEY_MAX // _B - 1))
+    i = np.minimum(np.searchsorted(lin_sorted, lin), lin_sorted.size - 1)
+    hit = in_range & (lin_sorted[i] == lin)
+    return wb, np.where(hit, rows_sorted[i], nan_row).astype(np.int32)
 
 
-def _resample_chunk(m, table, rowtab, nan_row, A, c, K_d, K_s, bkeys, bvalid, mode):
-    """Resample one chunk of destination bricks ``bkeys (B, 3)``: per voxel ``(log_odds
-    (B, 512) clamped, known (B, 512))`` in local Morton order."""
+def _resample_chunk(m, table, A, c, K_d, K_s, bkeys, wb, wrows, bvalid, mode):
+    """Resample one chunk of destination bricks ``bkeys (B, 3)`` with source windows from
+    ``wb (B, 3)`` (brick keys) and window table offsets ``wrows (B * 27,)`` (row * 512): per
+    voxel ``(log_odds (B, 512) clamped, known (B, 512))`` in local Morton order.
+
+    Every per-voxel quantity is a ``(B, 512)`` array per axis or per corner (no trailing axis
+    of 3 or 8): XLA's CPU loops then vectorise, and the 8 neighbour reads are 8 flat gathers.
+    """
     nb = bkeys.shape[0]
-    keys = bkeys[:, None, :] * _B + jnp.asarray(_LOCAL)  # (B, 512, 3) destination keys
-    u = (keys - K_d).astype(jnp.float32) @ A.T + c  # eq. 5.13 in key units, relative to K_s
-    base = jnp.floor(u)
-    f = u - base
-    # Snap offsets within float32 noise of a lattice point (exact whole-voxel moves).
-    up = f > 1.0 - _SNAP
-    base = jnp.where(up, base + 1.0, base)
-    f = jnp.where(up | (f < _SNAP), jnp.float32(0), f)
-    key0 = base.astype(jnp.int32) + K_s  # (B, 512, 3) key of corner 0
-    wb = jnp.right_shift(jnp.min(key0, axis=1), 3)  # (B, 3) window origin (bricks)
-    rows = _window_rows(m, rowtab, nan_row, wb) * _BV  # (B, 27)
-    # Per axis, the two neighbour keys; corners combine them (c = bx + 2 by + 4 bz).
-    kk = key0[..., None] + jnp.arange(2, dtype=jnp.int32)  # (B, 512, 3, 2)
-    o = jnp.right_shift(kk, 3) - wb[:, None, :, None]
-    ok = (kk >= 0) & (kk < _KEY_MAX) & (o >= 0) & (o <= 2)
-    o = jnp.clip(o, 0, 2)
-    sp = _spread3bits(kk & 7)
+    nan_off = table.shape[0] - _BV  # the table's last row is NaN (unknown)
 
-    def combine(x, y, z, op):
-        return op(op(z[..., :, None, None], y[..., None, :, None]), x[..., None, None, :])
+    def neighbours():
+        """Offsets ``f`` (3 x (B, 512) f32) and the table index of each of the 8 neighbours
+        (8 x (B, 512) int32; the NaN row where a neighbour leaves the key range)."""
+        # eq. 5.13 in key units, relative to K_s
+        keys = bkeys[:, None, :] * _B + jnp.asarray(_LOCAL)  # (B, 512, 3) destination keys
+        uu = (keys - K_d).astype(jnp.float32) @ A.T + c
+        f, o, ok, sp = [], [], [], []
+        for i in range(3):
+            u = uu[..., i]
+            base = jnp.floor(u)
+            fi = u - base
+            # Snap offsets within float32 noise of a lattice point (exact whole-voxel moves).
+            up = fi > 1.0 - _SNAP
+            base = jnp.where(up, base + 1.0, base)
+            f.append(jnp.where(up | (fi < _SNAP), jnp.float32(0), fi))
+            key0 = base.astype(jnp.int32) + K_s[i]
+            # Per bit b, the neighbour key k0 + b: window offset (bricks), local Morton bits.
+            kk = [key0, key0 + 1]
+            oo = [jnp.right_shift(k, 3) - wb[:, i, None] for k in kk]
+            ok.append([(k >= 0) & (k < _KEY_MAX) & (q >= 0) & (q <= 2) for k, q in zip(kk, oo)])
+            o.append([jnp.clip(q, 0, 2) * (3 ** i) for q in oo])
+            sp.append([_spread3bits(k & 7) << i for k in kk])
+        brick0 = (jnp.arange(nb, dtype=jnp.int32) * 27)[:, None]
+        idx = []
+        for corner in range(8):
+            bx, by, bz = corner & 1, (corner >> 1) & 1, corner >> 2
+            row = wrows.at[brick0 + o[0][bx] + o[1][by] + o[2][bz]].get(mode="promise_in_bounds")
+            i8 = row + (sp[0][bx] | sp[1][by] | sp[2][bz])
+            idx.append(jnp.where(ok[0][bx] & ok[1][by] & ok[2][bz], i8, nan_off))
+        return f, idx
 
-    widx = combine(o[..., 0, :], 3 * o[..., 1, :], 9 * o[..., 2, :], jnp.add)
-    local = combine(sp[..., 0, :], sp[..., 1, :] << 1, sp[..., 2, :] << 2, jnp.bitwise_or)
-    valid = combine(ok[..., 0, :], ok[..., 1, :], ok[..., 2, :], jnp.logical_and)
-    flat = jnp.take_along_axis(rows, widx.reshape(nb, -1), axis=1, mode="promise_in_bounds")
-    val = table.at[flat.reshape(nb, _BV, 8) + local.reshape(nb, _BV, 8)].get(
-        mode="promise_in_bounds")  # indices are in bounds by construction
-    known8 = valid.reshape(nb, _BV, 8) & ~jnp.isnan(val)
-    _, lo, center_known, exact = _blend(val, known8, f, mode)
+    def nothing():
+        z = jnp.zeros((nb, _BV), jnp.float32)
+        return [z] * 3, [jnp.full((nb, _BV), nan_off, jnp.int32)] * 8
+
+    # A conditional's results are materialised: without it XLA's CPU fusion would recompute
+    # the index arithmetic inside each of the 8 gathers and at every use in the blend.
+    f, idx = jax.lax.cond(bvalid[0], neighbours, nothing)
+    vals = [table.at[i].get(mode="promise_in_bounds") for i in idx]  # in bounds by construction
+    known8 = [~jnp.isnan(v) for v in vals]
+    _, lo, center_known, exact = _blend(vals, known8, tuple(f), mode)
     lo = jnp.where(jnp.isnan(exact), lo, exact)
     lo = jnp.clip(lo, m.params.clamp_min_log_odds, m.params.clamp_max_log_odds)
     known = center_known & bvalid[:, None]
@@ -471,16 +488,15 @@ def _brick_prune(lo, known):
 
 
 @functools.partial(jax.jit, static_argnames=("chunk", "out_capacity"))
-def _transform_kernel(m, table, rowtab, nan_row, A, c, K_d, K_s, bkeys, n_bricks, mode,
-                      chunk, out_capacity):
+def _transform_kernel(m, table, A, c, K_d, K_s, bkeys, wb, wrows, n_bricks, mode, chunk,
+                      out_capacity):
     """Scan over chunks of destination bricks; append each chunk's brick-pruned leaves.
 
     Returns ``(map of brick-pruned leaves (capacity out_capacity), total leaves, number of
     whole-brick (depth-13) leaves)``; ``total > out_capacity`` means overflow (rerun bigger).
     """
     n_chunks = bkeys.shape[0] // chunk
-    rows = chunk * _BV
-    cap = out_capacity + rows
+    cap = out_capacity
     init = (
         jnp.zeros((cap, 2), jnp.int32).at[:, 0].set(morton.SENTINEL_HI),
         jnp.full((cap,), _D, jnp.int32),
@@ -491,8 +507,10 @@ def _transform_kernel(m, table, rowtab, nan_row, A, c, K_d, K_s, bkeys, n_bricks
 
     def compute(i):
         bk = jax.lax.dynamic_slice_in_dim(bkeys, i * chunk, chunk)
+        w = jax.lax.dynamic_slice_in_dim(wb, i * chunk, chunk)
+        wr = jax.lax.dynamic_slice_in_dim(wrows, i * chunk * 27, chunk * 27)
         bvalid = i * chunk + jnp.arange(chunk) < n_bricks
-        lo, known = _resample_chunk(m, table, rowtab, nan_row, A, c, K_d, K_s, bk, bvalid, mode)
+        lo, known = _resample_chunk(m, table, A, c, K_d, K_s, bk, w, wr, bvalid, mode)
         emit, depth = _brick_prune(lo, known)
         return lo, emit, depth
 
@@ -511,19 +529,15 @@ def _transform_kernel(m, table, rowtab, nan_row, A, c, K_d, K_s, bkeys, n_bricks
         emit = emit.reshape(-1)
         n_emit = jnp.sum(emit, dtype=jnp.int32)
         n13 = n13 + jnp.sum(emit & (depth.reshape(-1) == _BRICK_DEPTH), dtype=jnp.int32)
-        (idx,) = jnp.nonzero(emit, size=rows, fill_value=0)
-        start = jnp.minimum(offset, out_capacity)
-        out_code = jax.lax.dynamic_update_slice_in_dim(out_code, vcode.reshape(-1, 2)[idx], start, 0)
-        out_depth = jax.lax.dynamic_update_slice_in_dim(out_depth, depth.reshape(-1)[idx], start, 0)
-        out_lo = jax.lax.dynamic_update_slice_in_dim(out_lo, lo.reshape(-1)[idx], start, 0)
+        # Append the emitted leaves in order: one scatter per array (past capacity: dropped).
+        pos = jnp.where(emit, offset + jnp.cumsum(emit, dtype=jnp.int32) - 1, cap)
+        out_code = out_code.at[pos].set(vcode.reshape(-1, 2), mode="drop")
+        out_depth = out_depth.at[pos].set(depth.reshape(-1), mode="drop")
+        out_lo = out_lo.at[pos].set(lo.reshape(-1), mode="drop")
         return (out_code, out_depth, out_lo, offset + n_emit, n13), None
 
     (code, depth, lo, total, n13), _ = jax.lax.scan(step, init, jnp.arange(n_chunks))
     count = jnp.minimum(total, out_capacity)
-    valid = jnp.arange(out_capacity) < count
-    code = jnp.where(valid[:, None], code[:out_capacity], jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
-    depth = jnp.where(valid, depth[:out_capacity], _D)
-    lo = jnp.where(valid, lo[:out_capacity], jnp.float32(0))
     out = OccupancyMap(code, depth, lo, count, m.params, m.resolution, m.tree_depth)
     return out, total, n13
 
@@ -594,8 +608,9 @@ def _plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: int,
           out_capacity: int | None) -> _Plan:
     """Host: destination bricks, the source's brick table and the key-frame constants."""
     R, t_key = _key_transform(T, m.resolution)
-    dest = _plan_dest_bricks(_source_brick_keys(m), (R, t_key))
-    table, rowtab, nan_row, n_db = _source_table(m)
+    table, bricks, brick_rows, nan_row, n_db = _source_view(m)
+    dest = _plan_dest_bricks(bricks, (R, t_key))
+    wb, rows = _dest_windows(dest, R, t_key, bricks, brick_rows, nan_row)
     # Relative coordinates keep float32 precision: u_rel = R^T (k - K_d) + c, with
     # K_s = round(R^T (K_d - t_key)) so that |c| <= 0.5.
     n_b = dest.shape[0]
@@ -607,12 +622,16 @@ def _plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: int,
     b_cap = int(math.ceil(b_cap / chunk) * chunk)
     bkeys = np.zeros((b_cap, 3), np.int32)
     bkeys[:n_b] = dest
+    wbp = np.zeros((b_cap, 3), np.int32)
+    wbp[:n_b] = wb
+    wrows = np.full((b_cap, 27), nan_row * _BV, np.int32)
+    wrows[:n_b] = rows * _BV
     if out_capacity is None:
         out_capacity = bucket_capacity(2 * m.num_leaves + 8 * n_b, minimum=1 << 15)
-    args = (m, jnp.asarray(table), jnp.asarray(rowtab), jnp.int32(nan_row),
-            jnp.asarray(R.T, jnp.float32), jnp.asarray(c, jnp.float32),
+    args = (m, jnp.asarray(table), jnp.asarray(R.T, jnp.float32), jnp.asarray(c, jnp.float32),
             jnp.asarray(K_d, jnp.int32), jnp.asarray(K_s, jnp.int32), jnp.asarray(bkeys),
-            jnp.int32(n_b), jnp.int32(_mode_index(method, space)))
+            jnp.asarray(wbp), jnp.asarray(wrows.reshape(-1)), jnp.int32(n_b),
+            jnp.int32(_mode_index(method, space)))
     return _Plan(args, chunk, int(out_capacity), n_b, n_db)
 
 
