@@ -425,13 +425,14 @@ def _resample_chunk(m, table, A, c, K_d, K_s, bkeys, wb, wrows, bvalid, mode):
     nb = bkeys.shape[0]
     nan_off = table.shape[0] - _BV  # the table's last row is NaN (unknown)
 
-    def neighbours():
-        """Offsets ``f`` (3 x (B, 512) f32) and the table index of each of the 8 neighbours
-        (8 x (B, 512) int32; the NaN row where a neighbour leaves the key range)."""
+    def per_axis():
+        """Offsets ``f`` (3 x (B, 512) f32) and, per axis ``i`` and bit ``b``, the neighbour
+        key ``k0 + b`` packed in one int32: window brick ``q 3^i`` (bits 16+), out-of-window
+        flag (bit 13) and local Morton bits (bits 0-8), so a corner sums three of them."""
         # eq. 5.13 in key units, relative to K_s
         keys = bkeys[:, None, :] * _B + jnp.asarray(_LOCAL)  # (B, 512, 3) destination keys
         uu = (keys - K_d).astype(jnp.float32) @ A.T + c
-        f, o, ok, sp = [], [], [], []
+        f, packed = [], []
         for i in range(3):
             u = uu[..., i]
             base = jnp.floor(u)
@@ -441,29 +442,26 @@ def _resample_chunk(m, table, A, c, K_d, K_s, bkeys, wb, wrows, bvalid, mode):
             base = jnp.where(up, base + 1.0, base)
             f.append(jnp.where(up | (fi < _SNAP), jnp.float32(0), fi))
             key0 = base.astype(jnp.int32) + K_s[i]
-            # Per bit b, the neighbour key k0 + b: window offset (bricks), local Morton bits.
-            kk = [key0, key0 + 1]
-            oo = [jnp.right_shift(k, 3) - wb[:, i, None] for k in kk]
-            ok.append([(k >= 0) & (k < _KEY_MAX) & (q >= 0) & (q <= 2) for k, q in zip(kk, oo)])
-            o.append([jnp.clip(q, 0, 2) * (3 ** i) for q in oo])
-            sp.append([_spread3bits(k & 7) << i for k in kk])
-        brick0 = (jnp.arange(nb, dtype=jnp.int32) * 27)[:, None]
-        idx = []
-        for corner in range(8):
-            bx, by, bz = corner & 1, (corner >> 1) & 1, corner >> 2
-            row = wrows.at[brick0 + o[0][bx] + o[1][by] + o[2][bz]].get(mode="promise_in_bounds")
-            i8 = row + (sp[0][bx] | sp[1][by] | sp[2][bz])
-            idx.append(jnp.where(ok[0][bx] & ok[1][by] & ok[2][bz], i8, nan_off))
-        return f, idx
+            for k in (key0, key0 + 1):
+                q = jnp.right_shift(k, 3) - wb[:, i, None]
+                bad = (k < 0) | (k >= _KEY_MAX) | (q < 0) | (q > 2)
+                packed.append((jnp.clip(q, 0, 2) * 3 ** i << 16) | (bad.astype(jnp.int32) << 13)
+                              | (_spread3bits(k & 7) << i))
+        return f, packed
 
     def nothing():
-        z = jnp.zeros((nb, _BV), jnp.float32)
-        return [z] * 3, [jnp.full((nb, _BV), nan_off, jnp.int32)] * 8
+        return [jnp.zeros((nb, _BV), jnp.float32)] * 3, [jnp.full((nb, _BV), 1 << 13, jnp.int32)] * 6
 
     # A conditional's results are materialised: without it XLA's CPU fusion would recompute
-    # the index arithmetic inside each of the 8 gathers and at every use in the blend.
-    f, idx = jax.lax.cond(bvalid[0], neighbours, nothing)
-    vals = [table.at[i].get(mode="promise_in_bounds") for i in idx]  # in bounds by construction
+    # all the index arithmetic inside each of the 8 gathers and at every use in the blend.
+    f, packed = jax.lax.cond(bvalid[0], per_axis, nothing)
+    brick0 = (jnp.arange(nb, dtype=jnp.int32) * 27)[:, None]
+    vals = []
+    for corner in range(8):
+        s = packed[corner & 1] + packed[2 + ((corner >> 1) & 1)] + packed[4 + (corner >> 2)]
+        row = wrows.at[brick0 + jnp.right_shift(s, 16)].get(mode="promise_in_bounds")
+        idx = jnp.where((s & (3 << 13)) != 0, nan_off, row + (s & (_BV - 1)))
+        vals.append(table.at[idx].get(mode="promise_in_bounds"))  # in bounds by construction
     known8 = [~jnp.isnan(v) for v in vals]
     _, lo, center_known, exact = _blend(vals, known8, tuple(f), mode)
     lo = jnp.where(jnp.isnan(exact), lo, exact)
