@@ -30,8 +30,8 @@ source bricks (image width <= 7 sqrt(3) + 1 < 16 voxels). Each window brick cost
 (one dense 512-value row per brick holding leaves finer than a brick, one constant row per
 distinct value of whole-brick leaves); the 8 x 512 neighbour reads are then plain indexing.
 Each brick is pruned inside itself (levels 16 -> 13) before its leaves are appended to the
-output; the final maximal prune only has to merge whole-brick leaves (``tree.prune`` on that
-subset, merged back by code). Peak memory: the source, its dense brick table (2 KiB per
+output; the final maximal prune only has to merge whole-brick leaves (few: merged on the
+host, then the output is compacted on the device). Peak memory: the source, its dense brick table (2 KiB per
 brick with fine leaves), the brick-pruned output and one chunk of work.
 """
 
@@ -550,37 +550,59 @@ def _compact_rows(keep, cap, *arrays_fill):
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("cap13",))
-def _prune_brick_output(m: OccupancyMap, cap13: int) -> OccupancyMap:
-    """Maximal prune of brick-pruned output: only whole-brick (depth-13) leaves can merge
-    further (finer leaves are maximal inside their brick already), so prune that subset with
-    ``tree.prune`` and merge it back with the finer leaves by code (two ``searchsorted``)."""
-    cap = m.capacity
-    valid = m.valid_mask()
-    is13 = valid & (m.depth == _BRICK_DEPTH)
+def _prune_whole_bricks(codes, values):
+    """Host: maximal prune of whole-brick leaves ``codes (n,) uint64`` (sorted, all depth
+    13) with log-odds ``values (n,)``: eight siblings of equal log-odds (exact float
+    equality, as ``tree.prune``) merge into their parent, level by level. A merged node keeps
+    its first child's code and value. Returns ``(drop (k,), head (r,), head_depth (r,))``:
+    indices of the children that disappear, and of the first children that now stand for a
+    coarser node, with its depth."""
+    n = codes.size
+    depth = np.full(n, _BRICK_DEPTH, np.int32)
+    dropped = np.zeros(n, bool)
+    row = np.arange(n)  # the first original row under each active node
+    c, v = codes, values
+    for d in range(_BRICK_DEPTH, 0, -1):
+        if c.size < 8:
+            break
+        shift = np.uint64(3 * (_D - d + 1))
+        parent = c >> shift
+        start = np.ones(c.size, bool)
+        start[1:] = parent[1:] != parent[:-1]
+        gid = np.cumsum(start) - 1
+        first = np.flatnonzero(start)
+        size = np.diff(np.append(first, c.size))
+        uniform = np.bincount(gid, weights=v != v[first][gid], minlength=first.size) == 0
+        merge = (size == 8) & uniform
+        if not merge.any():
+            break
+        merged = merge[gid]
+        dropped[row[merged & ~start]] = True
+        keep = first[merge]
+        depth[row[keep]] = d - 1
+        c, v, row = parent[keep] << shift, v[keep], row[keep]
+    head = np.flatnonzero((depth != _BRICK_DEPTH) & ~dropped)
+    return np.flatnonzero(dropped), head, depth[head]
+
+
+@functools.partial(jax.jit, static_argnames=("capacity",))
+def _apply_brick_merges(m: OccupancyMap, drop, head, head_depth, capacity: int) -> OccupancyMap:
+    """Drop rows ``drop`` of the brick-pruned output and set the depth of rows ``head`` to
+    ``head_depth`` (index padding: out of range); compact to ``capacity`` rows, order kept."""
+    keep = m.valid_mask().at[drop].set(False, mode="drop")
+    depth = m.depth.at[head].set(head_depth, mode="drop")
     sentinel = jnp.array([morton.SENTINEL_HI, 0], jnp.int32)
-    c13, d13, l13 = _compact_rows(is13, cap13, (m.code, sentinel), (m.depth, _D),
-                                  (m.log_odds, jnp.float32(0)))
-    n13 = jnp.sum(is13, dtype=jnp.int32)
-    sub = tree.prune(OccupancyMap(c13, d13, l13, n13, m.params, m.resolution, m.tree_depth))
-    fine = valid & ~is13
-    # fine row -> its rank among fine rows + number of pruned coarse rows before it
-    pos_f = jnp.cumsum(fine) - 1 + morton.searchsorted_words(sub.code, m.code, side="left")
-    pos_f = jnp.where(fine, pos_f, cap)
-    # coarse row -> its rank + number of fine rows before it (all rows before it minus the
-    # depth-13 rows before it; a merged node starts where its first child started)
-    j = jnp.arange(cap13, dtype=jnp.int32)
-    before_all = morton.searchsorted_words(m.code, sub.code, side="left")
-    before_13 = morton.searchsorted_words(c13, sub.code, side="left")
-    pos_c = jnp.where(j < sub.count, j + before_all - before_13, cap)
-    code = jnp.zeros_like(m.code).at[:, 0].set(morton.SENTINEL_HI)
-    code = code.at[pos_f].set(m.code, mode="drop").at[pos_c].set(sub.code, mode="drop")
-    depth = jnp.full_like(m.depth, _D).at[pos_f].set(m.depth, mode="drop")
-    depth = depth.at[pos_c].set(sub.depth, mode="drop")
-    lo = jnp.zeros_like(m.log_odds).at[pos_f].set(m.log_odds, mode="drop")
-    lo = lo.at[pos_c].set(sub.log_odds, mode="drop")
-    count = jnp.sum(fine, dtype=jnp.int32) + sub.count
+    code, depth, lo = _compact_rows(keep, capacity, (m.code, sentinel), (depth, _D),
+                                    (m.log_odds, jnp.float32(0)))
+    count = jnp.sum(keep, dtype=jnp.int32)
     return OccupancyMap(code, depth, lo, count, m.params, m.resolution, m.tree_depth)
+
+
+def _padded(x, dtype, fill):
+    """``x`` padded with ``fill`` to a power-of-two length (few compiled shapes)."""
+    out = np.full(bucket_capacity(x.size, minimum=64), fill, dtype)
+    out[:x.size] = x
+    return out
 
 
 def _key_transform(T, resolution):
@@ -634,18 +656,23 @@ def _plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: int,
 
 
 def _run(plan: _Plan) -> OccupancyMap:
-    """Run the kernel (growing the output if the guess overflowed), then prune maximally."""
-    out, total, n13 = _transform_kernel(*plan.args, chunk=plan.chunk,
-                                        out_capacity=plan.out_capacity)
+    """Run the kernel (growing the output if the guess overflowed), then prune maximally:
+    leaves finer than a brick are maximal already, so only the whole-brick leaves (few) are
+    merged, on the host, and the result is compacted on the device."""
+    out, total, _ = _transform_kernel(*plan.args, chunk=plan.chunk,
+                                      out_capacity=plan.out_capacity)
     total = int(total)
     if total > plan.out_capacity:
-        out, total, n13 = _transform_kernel(*plan.args, chunk=plan.chunk,
-                                            out_capacity=bucket_capacity(total))
-    cap = bucket_capacity(total)
-    if cap < out.capacity:  # prune only what the kernel filled
-        out = OccupancyMap(out.code[:cap], out.depth[:cap], out.log_odds[:cap], out.count,
-                           out.params, out.resolution, out.tree_depth)
-    return _prune_brick_output(out, cap13=bucket_capacity(int(n13)))
+        out, total, _ = _transform_kernel(*plan.args, chunk=plan.chunk,
+                                          out_capacity=bucket_capacity(total))
+    rows13 = np.flatnonzero(np.asarray(out.depth)[:total] == _BRICK_DEPTH)
+    codes = morton.join_codes(np.asarray(out.code)[rows13])
+    drop, head, head_depth = _prune_whole_bricks(codes, np.asarray(out.log_odds)[rows13])
+    cap = bucket_capacity(total - drop.size)
+    oob = out.capacity  # padding index: dropped by the scatters
+    return _apply_brick_merges(out, _padded(rows13[drop], np.int32, oob),
+                               _padded(rows13[head], np.int32, oob),
+                               _padded(head_depth, np.int32, _D), capacity=cap)
 
 
 def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
