@@ -189,7 +189,7 @@ def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
     for _ in range(repeats):
         c0 = time.process_time()
         t0 = time.perf_counter()
-        plan = resample._plan(m, resample.check_rigid_transform(T), method, "probability", 64, None)
+        plan = resample._plan(m, resample.check_rigid_transform(T), method, "probability", 128, None)
         jax.block_until_ready(plan.args)
         t1 = time.perf_counter()
         c1 = time.process_time()

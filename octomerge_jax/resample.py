@@ -298,9 +298,9 @@ def _source_view(m: OccupancyMap):
     leaf covers and ``brick_rows`` its table row. Memory: 2 KiB per dense brick.
     """
     n = m.num_leaves
-    codes = morton.join_codes(np.asarray(m.code[:n]))
-    depth = np.asarray(m.depth[:n])
-    lo = np.asarray(m.log_odds[:n])
+    codes = morton.join_codes(np.asarray(m.code)[:n])
+    depth = np.asarray(m.depth)[:n]
+    lo = np.asarray(m.log_odds)[:n]
     fine = depth > _BRICK_DEPTH
     c, d, v = codes[fine], depth[fine], lo[fine]
     bcode = c >> np.uint64(9)  # leaves are Morton-sorted, so a brick's leaves are contiguous
@@ -396,22 +396,32 @@ def _dest_windows(dest, R, t_key, bricks, brick_rows, nan_row):
     so with the margin the neighbours span <= 15 keys from at most 7 into the first brick.
     """
     n = dest.shape[0]
-    if n == 0:
-        return np.zeros((0, 3), np.int64), np.zeros((0, 27), np.int32)
+    if n == 0 or bricks.shape[0] == 0:
+        return np.zeros((n, 3), np.int64), np.full((n, 27), nan_row, np.int32)
     umin = np.full((n, 3), np.inf)
     for corner in _CORNERS:  # the extremes of an affine map over a cube are at its corners
         k = (dest * _B + 7 * corner).astype(np.float64)
         umin = np.minimum(umin, (k - t_key) @ R)  # R^T (k - t_key), row-wise
     wb = np.floor_divide(np.floor(umin - _WINDOW_MARGIN).astype(np.int64), _B)
-    order = np.argsort(_brick_lin(bricks))
-    lin_sorted = _brick_lin(bricks)[order]
-    rows_sorted = brick_rows[order]
-    q = wb[:, None, :] + _CORNERS_27[None]  # (n, 27, 3)
-    in_range = np.all((q >= 0) & (q < _KEY_MAX // _B), axis=-1)
-    lin = _brick_lin(np.clip(q, 0, _KEY_MAX // _B - 1))
-    i = np.minimum(np.searchsorted(lin_sorted, lin), lin_sorted.size - 1)
-    hit = in_range & (lin_sorted[i] == lin)
-    return wb, np.where(hit, rows_sorted[i], nan_row).astype(np.int32)
+    # Window bricks as linear indices into the source bricks' bounding box.
+    lo = bricks.min(axis=0)
+    ext = bricks.max(axis=0) - lo + 1
+    q = [wb[:, a, None] + np.arange(3) - lo[a] for a in range(3)]  # (n, 3) per axis
+    inside = [(qa >= 0) & (qa < ext[a]) for a, qa in enumerate(q)]
+    lin = (q[2][:, :, None, None] * ext[1] + q[1][:, None, :, None]) * ext[0] + q[0][:, None, None, :]
+    ok = inside[2][:, :, None, None] & inside[1][:, None, :, None] & inside[0][:, None, None, :]
+    lin, ok = lin.reshape(n, 27), ok.reshape(n, 27)  # window brick x + 3 y + 9 z
+    src = ((bricks[:, 2] - lo[2]) * ext[1] + bricks[:, 1] - lo[1]) * ext[0] + bricks[:, 0] - lo[0]
+    if np.prod(ext) <= max(1 << 22, 8 * src.size):  # a dense grid of rows (4 B per brick)
+        grid = np.full(int(np.prod(ext)), nan_row, np.int32)
+        grid[src] = brick_rows
+        rows = grid[np.where(ok, lin, 0)]
+    else:  # sparse source: binary search in the sorted bricks
+        order = np.argsort(src)
+        i = np.minimum(np.searchsorted(src[order], lin), src.size - 1)
+        ok &= src[order][i] == lin
+        rows = brick_rows[order][i]
+    return wb, np.where(ok, rows, nan_row).astype(np.int32)
 
 
 def _resample_chunk(m, table, A, c, K_d, K_s, bkeys, wb, wrows, bvalid, mode):
@@ -676,7 +686,7 @@ def _run(plan: _Plan) -> OccupancyMap:
 
 
 def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
-                  space: str = "probability", chunk_bricks: int = 64,
+                  space: str = "probability", chunk_bricks: int = 128,
                   out_capacity: int | None = None) -> OccupancyMap:
     """Alg. 7 (corrected): the map ``m`` of frame ``src`` expressed in frame ``dst``.
 
