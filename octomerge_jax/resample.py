@@ -482,17 +482,23 @@ def _resample_chunk(m, table, A, c, K_d, K_s, bkeys, wb, wrows, bvalid, mode):
 
 def _brick_prune(lo, known):
     """Prune inside each brick (levels 16 -> 13). ``(B, 512)`` -> per voxel
-    ``(emit (B, 512) bool, depth (B, 512) int32)``: a voxel emits the leaf it starts."""
+    ``(emit (B, 512) bool, depth (B, 512) int32)``: a voxel emits the leaf it starts.
+
+    A voxel's local Morton index is ``64 a + 8 b + c``: groups of 8 (same ``a, b``) are
+    uniform when all known and equal, groups of 64 when their 8 groups are uniform with
+    equal values, the brick likewise; each uniform level above a voxel lowers its depth."""
     nb = lo.shape[0]
-    depth = jnp.full(lo.shape, _D, jnp.int32)
-    for g, d in ((8, 15), (64, 14), (512, 13)):
-        lg = lo.reshape(nb, _BV // g, g)
-        kg = known.reshape(nb, _BV // g, g)
-        uni = jnp.all(kg, axis=-1) & jnp.all(lg == lg[..., :1], axis=-1)
-        depth = jnp.where(jnp.repeat(uni, g, axis=1), d, depth)
-    span = jnp.left_shift(1, 3 * (_D - depth))
-    local = jnp.arange(_BV, dtype=jnp.int32)[None, :]
-    return known & (local % span == 0), depth
+    l4, k4 = lo.reshape(nb, 8, 8, 8), known.reshape(nb, 8, 8, 8)
+    u8 = jnp.all(k4, axis=-1) & jnp.all(l4 == l4[..., :1], axis=-1)  # (B, 8, 8)
+    v8 = l4[..., 0]
+    u64 = jnp.all(u8, axis=-1) & jnp.all(v8 == v8[..., :1], axis=-1)  # (B, 8)
+    u512 = jnp.all(u64, axis=-1) & jnp.all(v8[..., 0] == v8[:, :1, 0], axis=-1)  # (B,)
+    u8, u64, u512 = u8[..., None], u64[..., None, None], u512[:, None, None, None]
+    depth = _D - u8.astype(jnp.int32) - u64.astype(jnp.int32) - u512.astype(jnp.int32)
+    i = jnp.arange(8, dtype=jnp.int32)
+    emit = (k4 & ((i == 0) | ~u8) & ((i[:, None] == 0) | ~u64)
+            & ((i[:, None, None] == 0) | ~u512))
+    return emit.reshape(nb, _BV), jnp.broadcast_to(depth, l4.shape).reshape(nb, _BV)
 
 
 @functools.partial(jax.jit, static_argnames=("chunk", "out_capacity"))
