@@ -114,6 +114,17 @@ def _check_choice(value, choices, name):
         raise ValueError(f"{name} must be one of {choices}, got {value!r}")
 
 
+@jax.jit
+def _key_bounds(m: OccupancyMap):
+    """Per-axis min key and max key + 1 ``(3,) int32`` over the leaves' cubes (on device:
+    no host copy of the leaves)."""
+    valid = m.valid_mask()[:, None]
+    keys = morton.words_to_keys(m.code)
+    end = keys + jnp.left_shift(1, _D - m.depth)[:, None]
+    return (jnp.min(jnp.where(valid, keys, _KEY_MAX), axis=0),
+            jnp.max(jnp.where(valid, end, 0), axis=0))
+
+
 def transformed_bounds(m: OccupancyMap, T_dst_src) -> tuple[np.ndarray, np.ndarray]:
     """Alg. 4: axis-aligned bounds ``(p_min, p_max)`` [m, float64 (3,)] in frame ``dst`` of
     the source map's leaf extent (OctoMap ``getMetricMin/Max``) after ``T_dst_src``.
@@ -124,10 +135,9 @@ def transformed_bounds(m: OccupancyMap, T_dst_src) -> tuple[np.ndarray, np.ndarr
     T = check_rigid_transform(T_dst_src)
     if m.num_leaves == 0:
         raise ValueError("transformed_bounds: the map has no leaves")
-    lv = m.leaves()
-    lo = (lv.keys.astype(np.float64) - morton.KEY_OFFSET) * m.resolution
-    hi = lo + lv.sizes[:, None]
-    bmin, bmax = lo.min(axis=0), hi.max(axis=0)
+    kmin, kmax = (np.asarray(k, np.float64) for k in _key_bounds(m))
+    bmin = (kmin - morton.KEY_OFFSET) * m.resolution
+    bmax = (kmax - morton.KEY_OFFSET) * m.resolution
     corners = np.array([[bmax[0] if c & 1 else bmin[0], bmax[1] if c & 2 else bmin[1],
                          bmax[2] if c & 4 else bmin[2]] for c in range(8)])
     moved = corners @ T[:3, :3].T + T[:3, 3]
