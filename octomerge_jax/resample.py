@@ -451,7 +451,9 @@ def _dest_windows(dest, R, t_key, bricks, brick_rows, nan_row):
 def _resample_chunk(m, table, A, c, K_d, K_s, bkeys, wb, wrows, bvalid, mode):
     """Resample one chunk of destination bricks ``bkeys (B, 3)`` with source windows from
     ``wb (B, 3)`` (brick keys) and window table offsets ``wrows (B * 27,)`` (row * 512): per
-    voxel ``(log_odds (B, 512) clamped, known (B, 512))`` in local Morton order.
+    voxel ``(log_odds (B, 512) clamped, known (B, 512))`` in local Morton order, and the number
+    of in-range neighbour keys of valid bricks outside their window (0 unless the host's
+    window planning is wrong; checked by ``_run``).
 
     Every per-voxel quantity is a ``(B, 512)`` array per axis or per corner (no trailing axis
     of 3 or 8): XLA's CPU loops then vectorise, and the 8 neighbour reads are 8 flat gathers.
@@ -466,7 +468,7 @@ def _resample_chunk(m, table, A, c, K_d, K_s, bkeys, wb, wrows, bvalid, mode):
         # eq. 5.13 in key units, relative to K_s
         keys = bkeys[:, None, :] * _B + jnp.asarray(_LOCAL)  # (B, 512, 3) destination keys
         uu = (keys - K_d).astype(jnp.float32) @ A.T + c
-        f, packed = [], []
+        f, packed, misses = [], [], jnp.int32(0)
         for i in range(3):
             u = uu[..., i]
             base = jnp.floor(u)
@@ -478,17 +480,21 @@ def _resample_chunk(m, table, A, c, K_d, K_s, bkeys, wb, wrows, bvalid, mode):
             key0 = base.astype(jnp.int32) + K_s[i]
             for k in (key0, key0 + 1):
                 q = jnp.right_shift(k, 3) - wb[:, i, None]
-                bad = (k < 0) | (k >= _KEY_MAX) | (q < 0) | (q > 2)
+                in_range = (k >= 0) & (k < _KEY_MAX)
+                outside = (q < 0) | (q > 2)
+                bad = ~in_range | outside
+                misses += jnp.sum(outside & in_range & bvalid[:, None], dtype=jnp.int32)
                 packed.append((jnp.clip(q, 0, 2) * 3 ** i << 16) | (bad.astype(jnp.int32) << 13)
                               | (_spread3bits(k & 7) << i))
-        return f, packed
+        return f, packed, misses
 
     def nothing():
-        return [jnp.zeros((nb, _BV), jnp.float32)] * 3, [jnp.full((nb, _BV), 1 << 13, jnp.int32)] * 6
+        return ([jnp.zeros((nb, _BV), jnp.float32)] * 3,
+                [jnp.full((nb, _BV), 1 << 13, jnp.int32)] * 6, jnp.int32(0))
 
     # A conditional's results are materialised: without it XLA's CPU fusion would recompute
     # all the index arithmetic inside each of the 8 gathers and at every use in the blend.
-    f, packed = jax.lax.cond(bvalid[0], per_axis, nothing)
+    f, packed, misses = jax.lax.cond(bvalid[0], per_axis, nothing)
     brick0 = (jnp.arange(nb, dtype=jnp.int32) * 27)[:, None]
     vals = []
     for corner in range(8):
@@ -501,7 +507,7 @@ def _resample_chunk(m, table, A, c, K_d, K_s, bkeys, wb, wrows, bvalid, mode):
     lo = jnp.where(jnp.isnan(exact), lo, exact)
     lo = jnp.clip(lo, m.params.clamp_min_log_odds, m.params.clamp_max_log_odds)
     known = center_known & bvalid[:, None]
-    return jnp.where(known, lo, jnp.float32(0)), known
+    return jnp.where(known, lo, jnp.float32(0)), known, misses
 
 
 def _brick_prune(lo, known):
@@ -530,8 +536,9 @@ def _transform_kernel(m, table, A, c, K_d, K_s, bkeys, wb, wrows, n_bricks, mode
                       out_capacity):
     """Scan over chunks of destination bricks; append each chunk's brick-pruned leaves.
 
-    Returns ``(map of brick-pruned leaves (capacity out_capacity), total leaves, number of
-    whole-brick (depth-13) leaves)``; ``total > out_capacity`` means overflow (rerun bigger).
+    Returns ``(map of brick-pruned leaves (capacity out_capacity), total leaves, window
+    misses)``; ``total > out_capacity`` means overflow (rerun bigger), ``misses > 0`` a
+    planning bug (see ``_resample_chunk``).
     """
     n_chunks = bkeys.shape[0] // chunk
     cap = out_capacity
@@ -548,36 +555,35 @@ def _transform_kernel(m, table, A, c, K_d, K_s, bkeys, wb, wrows, n_bricks, mode
         w = jax.lax.dynamic_slice_in_dim(wb, i * chunk, chunk)
         wr = jax.lax.dynamic_slice_in_dim(wrows, i * chunk * 27, chunk * 27)
         bvalid = i * chunk + jnp.arange(chunk) < n_bricks
-        lo, known = _resample_chunk(m, table, A, c, K_d, K_s, bk, w, wr, bvalid, mode)
+        lo, known, misses = _resample_chunk(m, table, A, c, K_d, K_s, bk, w, wr, bvalid, mode)
         emit, depth = _brick_prune(lo, known)
-        return lo, emit, depth
+        return lo, emit, depth, misses
 
     def skip(i):
         return (jnp.zeros((chunk, _BV), jnp.float32), jnp.zeros((chunk, _BV), bool),
-                jnp.full((chunk, _BV), _D, jnp.int32))
+                jnp.full((chunk, _BV), _D, jnp.int32), jnp.int32(0))
 
     def step(carry, i):
-        out_code, out_depth, out_lo, offset, n13 = carry
+        out_code, out_depth, out_lo, offset, misses = carry
         # Padding chunks (past n_bricks) skip the work, so generous buckets cost little.
-        lo, emit, depth = jax.lax.cond(i * chunk < n_bricks, compute, skip, i)
+        lo, emit, depth, miss = jax.lax.cond(i * chunk < n_bricks, compute, skip, i)
         bk = jax.lax.dynamic_slice_in_dim(bkeys, i * chunk, chunk)
         bwords = morton.keys_to_words(bk * _B)  # (B, 2); local Morton index fills low 9 bits
         vcode = jnp.stack([jnp.broadcast_to(bwords[:, None, 0], (chunk, _BV)),
                            bwords[:, None, 1] | jnp.arange(_BV, dtype=jnp.int32)[None, :]], -1)
         emit = emit.reshape(-1)
         n_emit = jnp.sum(emit, dtype=jnp.int32)
-        n13 = n13 + jnp.sum(emit & (depth.reshape(-1) == _BRICK_DEPTH), dtype=jnp.int32)
         # Append the emitted leaves in order: one scatter per array (past capacity: dropped).
         pos = jnp.where(emit, offset + jnp.cumsum(emit, dtype=jnp.int32) - 1, cap)
         out_code = out_code.at[pos].set(vcode.reshape(-1, 2), mode="drop")
         out_depth = out_depth.at[pos].set(depth.reshape(-1), mode="drop")
         out_lo = out_lo.at[pos].set(lo.reshape(-1), mode="drop")
-        return (out_code, out_depth, out_lo, offset + n_emit, n13), None
+        return (out_code, out_depth, out_lo, offset + n_emit, misses + miss), None
 
-    (code, depth, lo, total, n13), _ = jax.lax.scan(step, init, jnp.arange(n_chunks))
+    (code, depth, lo, total, misses), _ = jax.lax.scan(step, init, jnp.arange(n_chunks))
     count = jnp.minimum(total, out_capacity)
     out = OccupancyMap(code, depth, lo, count, m.params, m.resolution, m.tree_depth)
-    return out, total, n13
+    return out, total, misses
 
 
 def _compact_rows(keep, cap, *arrays_fill):
@@ -701,12 +707,15 @@ def _run(plan: _Plan) -> OccupancyMap:
     """Run the kernel (growing the output if the guess overflowed), then prune maximally:
     leaves finer than a brick are maximal already, so only the whole-brick leaves (few) are
     merged, on the host, and the result is compacted on the device."""
-    out, total, _ = _transform_kernel(*plan.args, chunk=plan.chunk,
-                                      out_capacity=plan.out_capacity)
+    out, total, misses = _transform_kernel(*plan.args, chunk=plan.chunk,
+                                           out_capacity=plan.out_capacity)
     total = int(total)
     if total > plan.out_capacity:
-        out, total, _ = _transform_kernel(*plan.args, chunk=plan.chunk,
-                                          out_capacity=_fine_bucket(total))
+        out, total, misses = _transform_kernel(*plan.args, chunk=plan.chunk,
+                                               out_capacity=_fine_bucket(total))
+    if int(misses):
+        raise RuntimeError(f"transform_map: {int(misses)} interpolation neighbours fell outside "
+                           "their planned source window (a bug; please report the transform)")
     rows13 = np.flatnonzero(np.asarray(out.depth)[:total] == _BRICK_DEPTH)
     codes = morton.join_codes(np.asarray(out.code)[rows13])
     drop, head, head_depth = _prune_whole_bricks(codes, np.asarray(out.log_odds)[rows13])
