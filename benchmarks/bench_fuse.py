@@ -19,6 +19,8 @@ Prints a table; compile (first call) is reported apart from the steady-state med
 from __future__ import annotations
 
 import argparse
+import os
+import importlib
 import resource
 import statistics
 import time
@@ -27,9 +29,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from octomerge_jax import fuse as F
 from octomerge_jax import map as omap
 from octomerge_jax import morton
+
+F = importlib.import_module("octomerge_jax.fuse")  # the package re-exports the function `fuse`
 
 RES = 0.1
 P = omap.OccupancyParams()
@@ -158,6 +161,7 @@ def bench_pairs(sizes, repeats):
               f"{int(rep.leaves_out):>9} {cap:>9} {compile_s:>9.2f} {merge:>8.3f} "
               f"{total - merge:>8.3f} {rate / 1e6:>8.2f} {f'{a_rate / 1e6:.2f}@{a_n / 1e6:.1f}M':>12} "
               f"{rate / a_rate:>8.2f} {peak_rss_gb():>6.2f}", flush=True)
+    print(f"load average {os.getloadavg()[0]:.2f}")
 
 
 def bench_many(shape, ms, repeats):
@@ -197,6 +201,7 @@ def bench_many(shape, ms, repeats):
                 np.array_equal(np.asarray(fold_out.log_odds[:n]), np.asarray(many_out.log_odds[:n])))
         print(f"{m:>3} {sum(mm.num_leaves for mm in maps):>9} {tf:>8.3f} {tm:>8.3f} {tf / tm:>9.2f} "
               f"{str(same):>6}", flush=True)
+    print(f"load average {os.getloadavg()[0]:.2f}")
 
 
 def main():
@@ -205,7 +210,8 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--many", default="2,4,8", help="m values for fuse_many vs fold ('' to skip)")
     args = ap.parse_args()
-    print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}")
+    print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
+          f"load average {os.getloadavg()[0]:.2f} (and at the end of each table)")
     bench_pairs([s for s in args.sizes.split(",") if s], args.repeats)
     if args.many:
         bench_many(SIZES["small"], [int(m) for m in args.many.split(",")], args.repeats)

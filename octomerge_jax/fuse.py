@@ -9,20 +9,22 @@ it, and only into the few cells needed.
 
 How, on flat Morton intervals (a leaf at depth ``d`` covers ``[code, code + 8^(16-d))``):
 
-1. One merge of the two sorted leaf lists (ranks by ``searchsorted`` of each list in the
-   other; nothing is re-sorted) tells every leaf which leaf of the other map starts at or
-   before it: hence whether it is covered by an equal or coarser leaf (thesis case 2 / 3),
-   strictly contains finer leaves (case 3 for M1, case 4 for M2: it is *split*), or lies
-   in unknown space (case 1).
+1. One merge of the two sorted leaf lists (merge path: each leaf's rank in the other list by
+   a short binary search inside its merge-path chunk; nothing is re-sorted) tells every
+   leaf which leaf of the other map starts at or before it: hence whether it is covered by
+   an equal or coarser leaf (thesis case 2 / 3), strictly contains finer leaves (case 3 for
+   M1, case 4 for M2: it is *split*), or lies in unknown space (case 1).
 2. A split leaf emits no cell itself. Each finer leaf inside it emits itself (with both
    values combined, eqs. 5.17 / 5.19) plus the *gap* before it (and after it, if it is the
    last one) inside the split leaf: the part of the coarse leaf that the finer map does not
    know, which keeps the coarse value alone (eq. 5.16 / 5.18 then case 1, eq. 5.14). A gap
    ``[s, e)`` is cut into the minimal set of aligned octree cells (at most 7 per level and
-   side), computed in closed form from the octal digits of ``s - 1`` and ``e``.
-3. Cell counts per leaf, one exclusive prefix sum in merged order, and every output slot
-   finds its owner with a scatter + cumulative max: the common refinement comes out
-   already sorted. Values are combined per rule, clamped, and pruned maximally in one pass
+   side), counted and enumerated in closed form from the octal digits of ``-s`` and ``e``
+   (digit sums, no loop over levels).
+3. Cell counts per leaf, one prefix sum in merged order: every leaf scatters its own cell to
+   its slot, every non-empty gap its interval to its first slot, and each gap slot finds its
+   gap by a cumulative max and computes its cell: the common refinement comes out already
+   sorted. Values are combined per rule, clamped, and pruned maximally in one pass
    (``tree.prune``: a node collapses iff its interval lies in one run of contiguous,
    equal-valued leaves).
 
@@ -43,8 +45,9 @@ The thesis code's bugs (adding probabilities where M2 is finer, forcing M2's occ
 to p = 0.6) are not reproduced.
 
 ``fuse_many(maps)`` fuses m maps in one pass: all leaf boundaries merged into one sorted
-list (a merge tree of sorted lists, no sort), elementary intervals, one common refinement,
-per-map coverage by cumulative maxima, one combined value per cell. For ``"sum"`` it is
+list (a merge tree of the maps' sorted boundary lists, no sort), elementary intervals, one
+common refinement, per-map coverage by cumulative maxima, one combined value per cell (two
+maps: the pair kernel above, which is that refinement). For ``"sum"`` it is
 bit-identical to folding ``fuse`` left to right (values are accumulated in map order with a
 clamp after each map, as the fold does).
 
@@ -120,8 +123,8 @@ class FuseReport:
 # ----------------------------------------------------------------------------- code arithmetic
 # A code is (hi, lo) int32 words of 24 bits = 8 octal digits each; digit k (0 = finest level)
 # lives in lo for k < 8, in hi for 8 <= k < 16, and digit 16 (only for the end 2^48 of the
-# whole volume) is bit 24 of hi. Level indices k may be traced (loops over levels are
-# ``fori_loop``s, which keeps compile times short).
+# whole volume) is bit 24 of hi. Level indices k may be traced. Everything below is
+# elementwise and loop-free (XLA fuses it into one pass).
 
 
 def _word_shift(k):
@@ -161,14 +164,28 @@ def _put_digit(hi, lo, k, val):
     return jnp.where(in_hi, hi | v, hi), jnp.where(in_hi, lo, lo | v)
 
 
-def _end_words(code, depth):
-    """Exclusive end ``code + 8^(16-depth)`` of leaves: ``(hi, lo)``; may equal 2^48."""
-    end = morton.end_words(code, depth)
-    return end[..., 0], end[..., 1]
+def _end(hi, lo, depth):
+    """Exclusive end ``code + 8^(16-depth)`` of leaves as words; may equal 2^48."""
+    shift = 3 * (_D - depth)
+    small = shift < 24
+    lo = lo + jnp.where(small, jnp.left_shift(1, jnp.minimum(shift, 23)), 0)
+    hi = hi + jnp.where(small, jnp.right_shift(lo, 24), jnp.left_shift(1, jnp.maximum(shift - 24, 0)))
+    return hi, lo & _MASK
 
 
 def _less(ah, al, bh, bl):
     return (ah < bh) | ((ah == bh) & (al < bl))
+
+
+def _digit_sum(hi, lo):
+    """Sum of the octal digits of a code (SWAR: pairs, then quads of digits, in each word)."""
+
+    def word(w):
+        v = (w & 0o07070707) + (jnp.right_shift(w, 3) & 0o07070707)
+        v = (v & 0o00770077) + (jnp.right_shift(v, 6) & 0o00770077)
+        return (v & 0xFFF) + jnp.right_shift(v, 12)
+
+    return word(hi) + word(lo)
 
 
 def _gap_top(sh, sl, eh, el):
@@ -184,78 +201,85 @@ def _gap_top(sh, sl, eh, el):
     xh = mh ^ eh
     xl = ml ^ el
     top_bit = jnp.where(xh != 0, 55 - jax.lax.clz(xh), 31 - jax.lax.clz(xl))
-    p = jnp.where(zero, _D, top_bit // 3)
+    p = jnp.where(zero, _D, jax.lax.div(jnp.maximum(top_bit, 0), 3))
     p = jnp.where(nonempty, p, 0)
     base = jnp.where(zero, 0, _digit(mh, ml, p) + 1)
     return nonempty, p, base
 
 
-def _left_count(sh, sl, k, p):
-    """Cells at level ``k`` ascending from ``s`` (0 unless ``k < p``)."""
-    n = (8 - _digit(sh, sl, k) - _low_nonzero(sh, sl, k).astype(jnp.int32)) & 7
-    return jnp.where(k < p, n, 0)
+def _gap_terms(sh, sl, eh, el):
+    """The decomposition of ``[s, e)`` into maximal aligned cells, in closed form: ascending
+    from ``s``, ``L_k`` cells at each level ``k < p`` where ``L = (-s) mod 8^p`` (octal digits
+    ``L_k``); then ``n_mid = d_p(e) - base`` cells at level ``p``; then descending to ``e``,
+    ``R_k`` cells at level ``k`` where ``R = e mod 8^p``. Returns ``(nonempty, p, base, L, R,
+    n_mid)`` with ``L``, ``R`` as word pairs."""
+    nonempty, p, base = _gap_top(sh, sl, eh, el)
+    hm, lm = _low_masks(p)
+    neg_h = (-sh - (sl != 0).astype(jnp.int32)) & _MASK
+    neg_l = (-sl) & _MASK
+    return nonempty, p, base, (neg_h & hm, neg_l & lm), (eh & hm, el & lm), _digit(eh, el, p) - base
 
 
 def _gap_plan(sh, sl, eh, el):
     """Number of cells of the canonical decomposition of Morton intervals ``[s, e)`` into
-    maximal aligned octree cells (0 for empty intervals). Ascending from ``s`` there are
-    ``(8 - d_k(s) - [s mod 8^k != 0]) mod 8`` cells at each level ``k < p``, then
-    ``d_p(e) - base`` at level ``p``, then ``d_k(e)`` descending to ``e``: at most 7 per
-    level and side."""
-    nonempty, p, base = _gap_top(sh, sl, eh, el)
+    maximal aligned octree cells (0 for empty intervals): ``digitsum(L) + n_mid +
+    digitsum(R)`` (``_gap_terms``), at most 7 per level and side."""
+    nonempty, _, _, L, R, n_mid = _gap_terms(sh, sl, eh, el)
+    return jnp.where(nonempty, _digit_sum(*L) + n_mid + _digit_sum(*R), 0)
 
-    def body(k, total):
-        return total + _left_count(sh, sl, k, p) + jnp.where(k < p, _digit(eh, el, k), 0)
 
-    total = jax.lax.fori_loop(0, _D, body, _digit(eh, el, p) - base)
-    return jnp.where(nonempty, total, 0)
+def _level_search(xh, xl, y):
+    """Largest ``j`` in 0..15 with ``digitsum(x mod 8^j) <= y`` (a 4-step binary search; the
+    digit sums of ``x``'s low digits grow with ``j``), and that digit sum."""
+    j = jnp.zeros_like(y)
+    s = jnp.zeros_like(y)
+    for step in (8, 4, 2, 1):
+        hm, lm = _low_masks(j + step)
+        v = _digit_sum(xh & hm, xl & lm)
+        ok = v <= y
+        j = jnp.where(ok, j + step, j)
+        s = jnp.where(ok, v, s)
+    return j, s
+
+
+def _gap_cell_info(sh, sl, eh, el, t):
+    """The ``t``-th cell (Morton order) of the decomposition of ``[s, e)``, packed in one int32
+    (one output, so XLA computes it once): ``level | digit << 5 | from_s << 8``. The cell's
+    digits above ``level`` are those of ``s`` (ascending part) or ``e``, its digit at
+    ``level`` is ``digit``, the rest are 0 (``_cell_code``). ``t`` must be below the count."""
+    _, p, base, L, R, n_mid = _gap_terms(sh, sl, eh, el)
+    ds_l, ds_r = _digit_sum(*L), _digit_sum(*R)
+    up = t < ds_l
+    mid = ~up & (t < ds_l + n_mid)
+    u = t - ds_l - n_mid  # index among the descending cells
+    # ascending cell t sits at the level j where the digit sums of L's low digits pass t;
+    # descending cell u at the level j where those of R's high digits pass u.
+    j, s_j = _level_search(jnp.where(up, L[0], R[0]), jnp.where(up, L[1], R[1]),
+                           jnp.where(up, t, ds_r - u - 1))
+    # ascending: digit j = d_j(s) + [s mod 8^j != 0] + i; descending: digit j = i;
+    # middle (level p): digit p = base + i
+    d_up = _digit(sh, sl, j) + _low_nonzero(sh, sl, j).astype(jnp.int32) + t - s_j
+    d_down = u - ds_r + s_j + _digit(R[0], R[1], j)
+    digit = jnp.where(up, d_up, jnp.where(mid, base + t - ds_l, d_down))
+    level = jnp.where(mid, p, j)
+    return level | jnp.left_shift(jnp.clip(digit, 0, 7), 5) | jnp.left_shift(up.astype(jnp.int32), 8)
+
+
+def _cell_code(sh, sl, eh, el, info):
+    """``(hi, lo, depth)`` of a cell from ``_gap_cell_info``."""
+    level = info & 31
+    digit = jnp.right_shift(info, 5) & 7
+    from_s = (jnp.right_shift(info, 8) & 1) == 1
+    h, l = _trunc(jnp.where(from_s, sh, eh), jnp.where(from_s, sl, el), jnp.minimum(level + 1, _D))
+    h, l = _put_digit(h, l, jnp.minimum(level, _D - 1), digit)
+    whole = level >= _D  # [0, 2^48): the root cell
+    return jnp.where(whole, 0, h), jnp.where(whole, 0, l), _D - level
 
 
 def _gap_cell(sh, sl, eh, el, t):
     """The ``t``-th cell (Morton order) of the decomposition of ``[s, e)``:
     ``(hi, lo, depth)``. ``t`` must be below the interval's cell count."""
-    _, p, base = _gap_top(sh, sl, eh, el)
-    zeros = jnp.zeros_like(sh)
-
-    def pick(state, sel, h, l, k):
-        done, oh, ol, ok, cum = state
-        sel = sel & ~done
-        return (done | sel, jnp.where(sel, h, oh), jnp.where(sel, l, ol), jnp.where(sel, k, ok), cum)
-
-    def up(k, state):  # ascending from s: digit k = d_k(s) + [low digits != 0] + i (no carry)
-        cum = state[-1]
-        n = _left_count(sh, sl, k, p)
-        i = t - cum
-        h, l = _trunc(sh, sl, k + 1)
-        val = _digit(sh, sl, k) + _low_nonzero(sh, sl, k).astype(jnp.int32) + i
-        h, l = _put_digit(h, l, k, jnp.clip(val, 0, 7))
-        state = pick(state, i < n, h, l, k)
-        return state[:-1] + (cum + n,)
-
-    state = jax.lax.fori_loop(0, _D, up, (jnp.zeros(sh.shape, bool), zeros, zeros, zeros, jnp.zeros_like(t)))
-    # middle, level p: digits above p from e, digit p = base + i (p = 16 only for [0, 2^48))
-    cum = state[-1]
-    i = t - cum
-    n_mid = _digit(eh, el, p) - base
-    h, l = _trunc(eh, el, jnp.minimum(p + 1, _D))
-    h, l = _put_digit(h, l, jnp.minimum(p, _D - 1), jnp.clip(base + i, 0, 7))
-    h = jnp.where(p >= _D, 0, h)
-    l = jnp.where(p >= _D, 0, l)
-    state = pick(state, i < n_mid, h, l, p)
-    state = state[:-1] + (cum + n_mid,)
-
-    def down(j, state):  # descending to e: digit k = i, digits above k from e
-        k = _D - 1 - j
-        cum = state[-1]
-        n = jnp.where(k < p, _digit(eh, el, k), 0)
-        i = t - cum
-        h, l = _trunc(eh, el, k + 1)
-        h, l = _put_digit(h, l, k, jnp.clip(i, 0, 7))
-        state = pick(state, i < n, h, l, k)
-        return state[:-1] + (cum + n,)
-
-    _, oh, ol, ok, _ = jax.lax.fori_loop(0, _D, down, state)
-    return oh, ol, _D - ok
+    return _cell_code(sh, sl, eh, el, _gap_cell_info(sh, sl, eh, el, t))
 
 
 # ----------------------------------------------------------------------------- rules
@@ -285,158 +309,196 @@ def _is_traced(*xs) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in xs)
 
 
-# ----------------------------------------------------------------------------- merge ranks
+# ----------------------------------------------------------------------------- scans, merge
 
 
-def _merge_ranks(a, b):
-    """For two sorted code lists ``a (Ca, 2)``, ``b (Cb, 2)``: ``(#b <= a_i, #a < b_j)``.
+_cumsum, _cummax, _materialize = tree._cumsum, tree._cummax, tree._materialize
 
-    Both inputs are sorted, so this is the merge of the two lists (no re-sort). It is a
-    vectorised binary search of each list in the other (``morton.searchsorted_words``).
+
+def _shift_down(x, fill):
+    """``y[i] = x[i - 1]``, ``y[0] = fill``."""
+    return jnp.concatenate([jnp.full((1,), fill, x.dtype), x[:-1]])
+
+
+def _shift_up(x, fill):
+    """``y[i] = x[i + 1]``, last = ``fill``."""
+    return jnp.concatenate([x[1:], jnp.full((1,), fill, x.dtype)])
+
+
+def _bsearch(lo, hi, pred, steps: int):
+    """``lo + #{i in [lo, hi): pred(i)}`` for a predicate true then false on ``[lo, hi)``:
+    ``steps`` (static, ``>= log2(max width + 1)``) halvings, vectorised."""
+
+    def body(_, state):
+        lo, hi = state
+        mid = jnp.right_shift(lo + hi, 1)
+        go = (mid < hi) & pred(mid)
+        return jnp.where(go, mid + 1, lo), jnp.where(go, hi, mid)
+
+    return jax.lax.fori_loop(0, steps, body, (lo, hi))[0]
+
+
+_CHUNK = 64  # merge-path chunk: each rank is a search over at most this many entries
+
+
+def _merge_ranks(ah, al, bh, bl):
+    """Merge two sorted code lists ``a (Ca,)``, ``b (Cb,)`` (word columns; ties: ``a`` first):
+    returns ``(#b < a_i, #a <= b_j)``, each element's rank in the other list.
+
+    Merge path, no sort: the merged sequence is cut into chunks of ``_CHUNK``; where each cut
+    falls in ``a`` and ``b`` is one binary search per cut (few), and then every element's
+    rank is a binary search inside its chunk's window (``log2(_CHUNK)`` cache-local steps)
+    instead of over the whole other list.
     """
-    return (morton.searchsorted_words(b, a, side="right"),
-            morton.searchsorted_words(a, b, side="left"))
+    ca, cb = ah.shape[0], bh.shape[0]
+    n = ca + cb
+    d = jnp.minimum(jnp.arange(-(-n // _CHUNK) + 1, dtype=jnp.int32) * _CHUNK, n)
+
+    def a_before_cut(i):  # a_i is among the first d merged iff a_i <= b[d - i - 1]
+        jb = d - i - 1
+        jc, ic = jnp.clip(jb, 0, cb - 1), jnp.clip(i, 0, ca - 1)
+        return (jb >= cb) | ((jb >= 0) & ~_less(bh[jc], bl[jc], ah[ic], al[ic]))
+
+    x = _bsearch(jnp.maximum(d - cb, 0), jnp.minimum(d, ca), a_before_cut, int(ca).bit_length())
+    y = d - x  # cut k: x[k] a's and y[k] b's precede it
+
+    def chunk_of(cuts, size):  # chunk k of element i: cuts[k] <= i < cuts[k + 1]
+        hits = jnp.zeros((size,), jnp.int32).at[cuts[1:-1]].add(1, mode="drop")
+        return _cumsum(hits)
+
+    steps = int(_CHUNK).bit_length()
+    ka = chunk_of(x, ca)
+    lt_a = _bsearch(y[ka], y[ka + 1], lambda j: _less(bh[j], bl[j], ah, al), steps)
+    kb = chunk_of(y, cb)
+    le_b = _bsearch(x[kb], x[kb + 1], lambda i: ~_less(bh, bl, ah[i], al[i]), steps)
+    return lt_a, le_b
 
 
 # ----------------------------------------------------------------------------- pair kernel
 
 
-def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b):
+def _bits(x):
+    return jax.lax.bitcast_convert_type(x.astype(jnp.float32), jnp.int32)
+
+
+def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, lo_c, hi_c):
     """Per-leaf plan of map A against map B (``first``: A is M1, equal pairs emit from A).
 
-    ``le_b[i]`` = number of B leaves with code <= A's code i.
+    ``le_b[i]`` = number of B leaves with code <= A's code i. A leaf emits, in order: the gap
+    before it inside a coarser B leaf, itself (unless split), the gap after it (if it is the
+    last A leaf inside that B leaf). All arrays ``(Ca,)``.
     """
     ca, cb = A.capacity, B.capacity
     na, nb = A.count, B.count
     ia = jnp.arange(ca, dtype=jnp.int32)
     valid = ia < na
-    sa_h, sa_l = A.code[:, 0], A.code[:, 1]
-    ea_h, ea_l = _end_words(A.code, A.depth)
-    eb_h, eb_l = _end_words(B.code, B.depth)
-    j = le_b - 1
+    ah, al = A.code[:, 0], A.code[:, 1]
+    aeh, ael = _end(ah, al, A.depth)
+    j = le_b - 1  # the last B leaf starting at or before A's leaf
     jc = jnp.clip(j, 0, cb - 1)
     jn = jnp.clip(j + 1, 0, cb - 1)
-    has_j = (j >= 0) & (j < nb)
-    cov = valid & has_j & _less(sa_h, sa_l, eb_h[jc], eb_l[jc])
-    dbj = B.depth[jc]
-    equal = cov & (dbj == A.depth)
-    coarser_b = cov & (dbj < A.depth)  # B's leaf strictly contains A's (A finer)
-    finer_at_start = cov & (dbj > A.depth)
-    next_inside = (j + 1 < nb) & _less(B.code[jn, 0], B.code[jn, 1], ea_h, ea_l)
+    gate = na >= 0
+    bh, bl, bd, bv, bnh, bnl = _materialize(gate, B.code[jc, 0], B.code[jc, 1], B.depth[jc],
+                                            B.log_odds[jc], B.code[jn, 0], B.code[jn, 1])
+    beh, bel = _end(bh, bl, bd)
+    cov = valid & (j >= 0) & (j < nb) & _less(ah, al, beh, bel)
+    equal = cov & (bd == A.depth)
+    inside_b = cov & (bd < A.depth)  # B's leaf strictly contains A's (A finer)
+    finer_at_start = cov & (bd > A.depth)
+    next_inside = (j + 1 < nb) & _less(bnh, bnl, aeh, ael)
     split = valid & (finer_at_start | (~cov & next_inside))
     self_emit = valid & ~split & ~(equal if not first else jnp.zeros_like(equal))
 
-    va, vb = A.log_odds, B.log_odds[jc]
-    both = _combine(rule, va, vb, w_a, w_b) if first else _combine(rule, vb, va, w_b, w_a)
-    self_val = jnp.where(cov, both, _single(rule, va, w_a))
-    gap_val = _single(rule, vb, w_b)
+    va = A.log_odds
+    both = _combine(rule, va, bv, w_a, w_b) if first else _combine(rule, bv, va, w_b, w_a)
+    self_val = jnp.clip(jnp.where(cov, both, _single(rule, va, w_a)), lo_c, hi_c)
+    gap_val = jnp.clip(_single(rule, bv, w_b), lo_c, hi_c)
 
-    # gaps inside B's coarser leaf (cells known only to B): before A's leaf, and after it
-    # if it is the last A leaf inside that B leaf.
-    prev = jnp.clip(ia - 1, 0, ca - 1)
-    pe_h, pe_l = ea_h[prev], ea_l[prev]
-    pb_h, pb_l = B.code[jc, 0], B.code[jc, 1]
-    use_prev = (ia > 0) & _less(pb_h, pb_l, pe_h, pe_l)
-    gb_s_h = jnp.where(use_prev, pe_h, pb_h)
-    gb_s_l = jnp.where(use_prev, pe_l, pb_l)
-    nxt = jnp.clip(ia + 1, 0, ca - 1)
-    last = (ia + 1 >= na) | ~_less(A.code[nxt, 0], A.code[nxt, 1], eb_h[jc], eb_l[jc])
-    ga_e_h = jnp.where(last, eb_h[jc], ea_h)
-    ga_e_l = jnp.where(last, eb_l[jc], ea_l)
-    # empty gaps where A is not strictly inside a B leaf: [s, s)
-    gb_s_h = jnp.where(coarser_b, gb_s_h, sa_h)
-    gb_s_l = jnp.where(coarser_b, gb_s_l, sa_l)
-    ga_e_h = jnp.where(coarser_b, ga_e_h, ea_h)
-    ga_e_l = jnp.where(coarser_b, ga_e_l, ea_l)
-    n_before = _gap_plan(gb_s_h, gb_s_l, sa_h, sa_l)
-    n_after = _gap_plan(ea_h, ea_l, ga_e_h, ga_e_l)
-    count = jnp.where(valid, n_before + self_emit.astype(jnp.int32) + n_after, 0)
+    # gaps inside B's coarser leaf (cells known only to B): before A's leaf, and after it if
+    # it is the last A leaf inside; empty ([x, x)) unless A is strictly inside a B leaf.
+    peh, pel = _shift_down(aeh, 0), _shift_down(ael, 0)
+    use_prev = (ia > 0) & _less(bh, bl, peh, pel)
+    gbh = jnp.where(inside_b, jnp.where(use_prev, peh, bh), ah)
+    gbl = jnp.where(inside_b, jnp.where(use_prev, pel, bl), al)
+    last = (ia + 1 >= na) | ~_less(_shift_up(ah, _SENT), _shift_up(al, 0), beh, bel)
+    gah = jnp.where(inside_b & last, beh, aeh)
+    gal = jnp.where(inside_b & last, bel, ael)
+    n_before = _materialize(gate, jnp.where(valid, _gap_plan(gbh, gbl, ah, al), 0))
+    n_after = _materialize(gate, jnp.where(valid, _gap_plan(aeh, ael, gah, gal), 0))
+    self_emit = _materialize(gate, self_emit)
+    count = n_before + self_emit.astype(jnp.int32) + n_after
     return dict(
-        count=count, n_before=n_before, self_emit=self_emit,
-        gb=(gb_s_h, gb_s_l, sa_h, sa_l), ga=(ea_h, ea_l, ga_e_h, ga_e_l),
-        self_val=self_val, gap_val=gap_val,
+        count=count, n_before=n_before, n_after=n_after, self_emit=self_emit,
+        self_row=(ah, al, A.depth, self_val),
+        gap_before=(gbh, gbl, ah, al, gap_val), gap_after=(aeh, ael, gah, gal, gap_val),
         stats=dict(equal=jnp.sum(equal & first), split=jnp.sum(split),
-                   both=jnp.sum(self_emit & cov),
-                   new_self=jnp.sum(self_emit & ~cov),
-                   gaps=jnp.sum(jnp.where(valid, n_before + n_after, 0))),
+                   both=jnp.sum(self_emit & cov), new_self=jnp.sum(self_emit & ~cov),
+                   gaps=jnp.sum(n_before + n_after)),
     )
 
 
-def _assemble(sides, orders, capacity: int, params, resolution, tree_depth):
-    """Lay the per-leaf cells of several leaf tables out in merged order and build the map.
+def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth):
+    """Lay out the common refinement (``capacity`` rows, Morton order) as an unpruned map.
 
-    ``sides``: per-table plans (``_side``); ``orders[t][i]``: number of cells owned by
-    other tables' leaves that precede leaf ``i`` of table ``t`` (already summed).
+    ``selfs``: ``(slot, hi, lo, depth, value)`` cells written as they are; ``gaps``: ``(slot,
+    count, s_hi, s_lo, e_hi, e_lo, value)``: the ``count`` cells of ``[s, e)`` from ``slot``
+    on. Slots past ``capacity`` are dropped (``total > capacity`` is the overflow). Cells are
+    scattered; every slot of a gap finds its gap by a cumulative max over gap start slots and
+    computes its cell in closed form (``_gap_cell``).
     """
-    offsets, owners, tabs = [], [], []
-    base_id = 0
-    for s, before in zip(sides, orders):
-        excl = jnp.cumsum(s["count"]) - s["count"]
-        offsets.append(excl + before)
-        owners.append(base_id + jnp.arange(s["count"].shape[0], dtype=jnp.int32))
-        base_id += s["count"].shape[0]
-    total = sum(jnp.sum(s["count"]) for s in sides).astype(jnp.int32)
-    slot = jnp.arange(capacity, dtype=jnp.int32)
-    mark = jnp.full((capacity,), -1, jnp.int32)
-    owner_at = jnp.zeros((capacity,), jnp.int32)
-    for s, off, own in zip(sides, offsets, owners):
-        pos = jnp.where(s["count"] > 0, off, capacity)
-        mark = mark.at[pos].set(pos, mode="drop")
-        owner_at = owner_at.at[pos].set(own, mode="drop")
-    first = jax.lax.cummax(mark)
-    owner = owner_at[jnp.clip(first, 0, capacity - 1)]
+    cap = capacity
+    self_rows = jnp.zeros((cap, 4), jnp.int32)  # hi, lo, depth + 1 (0: not a self cell), value
+    for slot, h, l, d, v in selfs:
+        self_rows = self_rows.at[slot].set(jnp.stack([h, l, d + 1, _bits(v)], -1), mode="drop")
+    gap_rows = jnp.zeros((cap, 6), jnp.int32)  # s_hi, s_lo, e_hi, e_lo, value, start slot + 1
+    for slot, n, sh, sl, eh, el, v in gaps:
+        slot = jnp.where(n > 0, slot, cap)
+        gap_rows = gap_rows.at[slot].set(jnp.stack([sh, sl, eh, el, _bits(v), slot + 1], -1),
+                                         mode="drop")
+    q = jnp.arange(cap, dtype=jnp.int32)
+    start = _cummax(gap_rows[:, 5]) - 1
+    g = gap_rows[jnp.maximum(start, 0)]
+    g0, g1, g2, g3 = g[:, 0], g[:, 1], g[:, 2], g[:, 3]
+    info = _materialize(total >= 0, _gap_cell_info(g0, g1, g2, g3, q - start))
+    ch, cl, cd = _cell_code(g0, g1, g2, g3, info)
+    is_self = self_rows[:, 2] > 0
+    ok = q < total
+    hi = jnp.where(ok, jnp.where(is_self, self_rows[:, 0], ch), _SENT)
+    lo = jnp.where(ok, jnp.where(is_self, self_rows[:, 1], cl), 0)
+    depth = jnp.where(ok, jnp.where(is_self, self_rows[:, 2] - 1, cd), _D)
+    val = jax.lax.bitcast_convert_type(jnp.where(is_self, self_rows[:, 3], g[:, 4]), jnp.float32)
+    val = jnp.where(ok, val, 0.0)
+    return OccupancyMap(jnp.stack([hi, lo], -1), depth, val, jnp.minimum(total, cap).astype(jnp.int32),
+                        params, resolution, tree_depth)
 
-    def cat(f):
-        return jnp.concatenate([f(s) for s in sides])
 
-    off_all = jnp.concatenate(offsets)[owner]
-    nb_all = cat(lambda s: s["n_before"])[owner]
-    self_all = cat(lambda s: s["self_emit"])[owner]
-    local = slot - off_all
-    in_before = local < nb_all
-    is_self = self_all & (local == nb_all)
-    gb = [cat(lambda s, i=i: s["gb"][i])[owner] for i in range(4)]
-    ga = [cat(lambda s, i=i: s["ga"][i])[owner] for i in range(4)]
-    g = [jnp.where(in_before, b, a) for b, a in zip(gb, ga)]
-    t = jnp.where(in_before, local, local - nb_all - self_all.astype(jnp.int32))
-    gh, gl, gd = _gap_cell(g[0], g[1], g[2], g[3], jnp.maximum(t, 0))
-    # self cell = the leaf itself: its code is the gap-before end, its depth from the gap-after
-    # start (end of leaf) is not needed: recover it from the tables.
-    depth_all = cat(lambda s: s["depth"])[owner]
-    hi = jnp.where(is_self, gb[2], gh)
-    lo = jnp.where(is_self, gb[3], gl)
-    depth = jnp.where(is_self, depth_all, gd)
-    val = jnp.where(is_self, cat(lambda s: s["self_val"])[owner], cat(lambda s: s["gap_val"])[owner])
-    ok = slot < total
-    code = jnp.stack([jnp.where(ok, hi, _SENT), jnp.where(ok, lo, 0)], axis=-1)
-    lo_p, hi_p = params.clamp_min_log_odds, params.clamp_max_log_odds
-    val = jnp.where(ok, jnp.clip(val, lo_p, hi_p), 0.0).astype(jnp.float32)
-    m = OccupancyMap(code, jnp.where(ok, depth, _D).astype(jnp.int32), val,
-                     jnp.minimum(total, capacity).astype(jnp.int32), params, resolution, tree_depth)
-    return m, total
+def _excl_at(incl, idx):
+    """``sum(count[:idx])`` from the inclusive prefix sum ``incl`` (0 for ``idx <= 0``)."""
+    return jnp.where(idx > 0, incl[jnp.clip(idx - 1, 0, incl.shape[0] - 1)], 0)
 
 
 @functools.partial(jax.jit, static_argnames=("capacity", "do_prune"))
 def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, do_prune: bool):
-    le2, lt1 = _merge_ranks(m1.code, m2.code)  # #m2 <= m1_i, #m1 < m2_j
-    # m2_j's lookup needs #m1 <= m2_j: add the equal-start m1 leaf.
-    k = jnp.clip(lt1, 0, m1.capacity - 1)
-    eq = (lt1 < m1.count) & morton.words_equal(m1.code[k], m2.code)
-    le1 = lt1 + eq.astype(jnp.int32)
-    s1 = _side(True, m1, m2, le2, rule, w1, w2)
-    s2 = _side(False, m2, m1, le1, rule, w2, w1)
-    s1["depth"], s2["depth"] = m1.depth, m2.depth
+    h1, l1, h2, l2 = m1.code[:, 0], m1.code[:, 1], m2.code[:, 0], m2.code[:, 1]
+    lt2, le1 = _merge_ranks(h1, l1, h2, l2)  # #m2 < m1_i, #m1 <= m2_j
+    k = jnp.clip(lt2, 0, m2.capacity - 1)
+    le2 = lt2 + ((lt2 < m2.count) & (h2[k] == h1) & (l2[k] == l1)).astype(jnp.int32)
+    lo_c, hi_c = m1.params.clamp_min_log_odds, m1.params.clamp_max_log_odds
+    s1 = _side(True, m1, m2, le2, rule, w1, w2, lo_c, hi_c)
+    s2 = _side(False, m2, m1, le1, rule, w2, w1, lo_c, hi_c)
     # merged order: m1 leaf i is preceded by the m2 leaves with code < its code; m2 leaf j
     # by the m1 leaves with code <= its code (ties: m1 first; one of a tied pair emits nothing
     # or the pair is equal and only m1 emits).
-    ex1 = jnp.cumsum(s1["count"]) - s1["count"]
-    ex2 = jnp.cumsum(s2["count"]) - s2["count"]
-    eq2 = (le2 > 0) & morton.words_equal(m2.code[jnp.clip(le2 - 1, 0, m2.capacity - 1)], m1.code)
-    lt2 = le2 - eq2.astype(jnp.int32)
-    before1 = _excl_at(ex2, s2["count"], lt2)
-    before2 = _excl_at(ex1, s1["count"], le1)
-    out, total = _assemble([s1, s2], [before1, before2], capacity, m1.params,
-                           m1.resolution, m1.tree_depth)
+    p1, p2 = _cumsum(s1["count"]), _cumsum(s2["count"])
+    total = (p1[-1] + p2[-1]).astype(jnp.int32)
+    selfs, gaps = [], []
+    for s, p, before in ((s1, p1, _excl_at(p2, lt2)), (s2, p2, _excl_at(p1, le1))):
+        off = p - s["count"] + before
+        self_slot = off + s["n_before"]
+        selfs.append((jnp.where(s["self_emit"], self_slot, capacity),) + s["self_row"])
+        gaps.append((off, s["n_before"]) + s["gap_before"])
+        gaps.append((self_slot + s["self_emit"].astype(jnp.int32), s["n_after"]) + s["gap_after"])
+    out = _emit(capacity, total, selfs, gaps, m1.params, m1.resolution, m1.tree_depth)
     if do_prune:
         out = tree._prune_runs(out)
     st1, st2 = s1["stats"], s2["stats"]
@@ -452,14 +514,6 @@ def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, 
         capacity=capacity,
     )
     return out, report
-
-
-def _excl_at(excl, count, idx):
-    """Sum of ``count[:idx]`` given its exclusive prefix sum ``excl`` (idx may equal len)."""
-    n = count.shape[0]
-    i = jnp.clip(idx, 0, n - 1)
-    full = excl[n - 1] + count[n - 1]
-    return jnp.where(idx >= n, full, excl[i])
 
 
 # ----------------------------------------------------------------------------- public
@@ -536,9 +590,10 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
               capacity: int | None = None, prune: bool = True, return_report: bool = False):
     """Fuse ``m`` maps (all in the first map's frame) in one pass.
 
-    All leaf boundaries are merged into one sorted list, the elementary intervals between
-    them form one common refinement, each map's value on it is found by a cumulative max,
-    and one value per cell is computed: for ``"sum"`` accumulated in map order with a clamp
+    All leaf boundaries are merged into one sorted list (a merge tree of the maps' sorted
+    boundary lists, no sort), the elementary intervals between them form one common
+    refinement, each map's value on it is found by a cumulative max, and one value per cell
+    is computed (two maps take the pair kernel of ``fuse``, the same refinement): for ``"sum"`` accumulated in map order with a clamp
     after each map, so the result is bit-identical to ``fuse(fuse(m0, m1), m2) ...``;
     ``"max"``: the maximum; ``"weighted"``: ``sum_k w_k L_k`` over the maps that know the
     voxel, clamped once. ``weights``: ``(m,)`` floats for ``"weighted"``.
@@ -556,10 +611,14 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
     w = jnp.asarray(np.asarray(weights, np.float32))
     traced = _is_traced(*[m.count for m in maps])
 
-    def run(cap):
-        return _fuse_many(tuple(maps), w, jnp.asarray(_MODE[rule], jnp.int32), cap, bool(prune))
+    mode = jnp.asarray(_MODE[rule], jnp.int32)
 
-    guess = 0 if traced else 2 * sum(int(m.count) for m in maps)
+    def run(cap):
+        if len(maps) == 2:  # the pair kernel is the one-pass refinement of two maps
+            return _fuse_pair(maps[0], maps[1], w[0], w[1], mode, cap, bool(prune))
+        return _fuse_many(tuple(maps), w, mode, cap, bool(prune))
+
+    guess = 0 if traced else (1 if len(maps) == 2 else 2) * sum(int(m.count) for m in maps)
     return _finish(run, guess, capacity, traced, return_report, "fuse_many")
 
 
@@ -568,34 +627,31 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
 
 def _merge_lists(a, b):
     """Stable merge of two sorted record lists ``(hi, lo, *payload)`` (tuples of ``(n,)``
-    arrays, duplicates allowed, padding sorted last); ties keep ``a`` first. Both inputs are
-    sorted, so each record's output position is its own index plus its rank in the other list
+    int32 arrays, duplicates allowed, padding sorted last); ties keep ``a`` first. Each
+    record's output position is its own index plus its rank in the other list
     (``_merge_ranks``): no sort."""
     ca, cb = a[0].shape[0], b[0].shape[0]
-    wa = jnp.stack([a[0], a[1]], axis=-1)
-    wb = jnp.stack([b[0], b[1]], axis=-1)
-    pos_a = jnp.arange(ca, dtype=jnp.int32) + morton.searchsorted_words(wb, wa, side="left")
-    pos_b = jnp.arange(cb, dtype=jnp.int32) + morton.searchsorted_words(wa, wb, side="right")
-    return tuple(jnp.zeros((ca + cb,), xa.dtype).at[pos_a].set(xa).at[pos_b].set(xb)
-                 for xa, xb in zip(a, b))
+    lt, le = _merge_ranks(a[0], a[1], b[0], b[1])
+    out = jnp.zeros((ca + cb, len(a)), jnp.int32)
+    out = out.at[jnp.arange(ca, dtype=jnp.int32) + lt].set(jnp.stack(a, -1))
+    out = out.at[jnp.arange(cb, dtype=jnp.int32) + le].set(jnp.stack(b, -1))
+    return tuple(out[:, i] for i in range(len(a)))
 
 
 @functools.partial(jax.jit, static_argnames=("capacity", "do_prune"))
 def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
     m0 = maps[0]
-    # 1. every map's starts and ends (each sorted) merged into one sorted boundary list;
-    #    payload: map id, leaf index (-1 for an end).
+    # 1. every map's boundaries (start, end, start, end, ...: already sorted, as its leaves
+    #    are disjoint) merged into one sorted list; payload: map id, leaf index (-1: an end).
     lists = []
     for k, m in enumerate(maps):
         valid = m.valid_mask()
-        eh, el = _end_words(m.code, m.depth)
-        eh = jnp.where(valid, eh, _SENT)
-        el = jnp.where(valid, el, 0)
-        idx = jnp.arange(m.capacity, dtype=jnp.int32)
-        kk = jnp.full((m.capacity,), k, jnp.int32)
-        lists.append((m.code[:, 0], m.code[:, 1], kk, jnp.where(valid, idx, -1)))
-        lists.append((eh, el, kk, jnp.full((m.capacity,), -1, jnp.int32)))
-    while len(lists) > 1:  # merge tree: log2(2m) levels
+        eh, el = _end(m.code[:, 0], m.code[:, 1], m.depth)
+        idx = jnp.where(valid, jnp.arange(m.capacity, dtype=jnp.int32), -1)
+        pairs = [(m.code[:, 0], jnp.where(valid, eh, _SENT)), (m.code[:, 1], jnp.where(valid, el, 0)),
+                 (jnp.full_like(idx, k), jnp.full_like(idx, k)), (idx, jnp.full_like(idx, -1))]
+        lists.append(tuple(jnp.stack(p, -1).reshape(-1) for p in pairs))
+    while len(lists) > 1:  # merge tree: log2(m) levels
         nxt = [_merge_lists(lists[i], lists[i + 1]) for i in range(0, len(lists) - 1, 2)]
         if len(lists) % 2:
             nxt.append(lists[-1])
@@ -603,22 +659,20 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
     bh, bl, bmap, bidx = lists[0]
     n_b = bh.shape[0]
     q = jnp.arange(n_b, dtype=jnp.int32)
-    nh = jnp.concatenate([bh[1:], jnp.full((1,), _SENT + 1, jnp.int32)])
-    nl = jnp.concatenate([bl[1:], jnp.zeros((1,), jnp.int32)])
+    nh, nl = _shift_up(bh, _SENT + 1), _shift_up(bl, 0)
     nonempty = _less(bh, bl, nh, nl) & (bh < _SENT)
     # 2. per map, the leaf covering each elementary interval [b_q, b_{q+1}): the last start
     #    of that map at or before q, if its end lies past b_q.
     cov, vals, exact = [], [], []
     for k, m in enumerate(maps):
-        is_start = (bmap == k) & (bidx >= 0)
-        last = jax.lax.cummax(jnp.where(is_start, q, -1))
-        leaf = jnp.clip(bidx[jnp.clip(last, 0, n_b - 1)], 0, m.capacity - 1)
-        eh, el = _end_words(m.code[leaf], m.depth[leaf])
+        last = _cummax(jnp.where((bmap == k) & (bidx >= 0), q, -1))
+        leaf = jnp.clip(bidx[jnp.maximum(last, 0)], 0, m.capacity - 1)
+        lh, ll, ld = m.code[leaf, 0], m.code[leaf, 1], m.depth[leaf]
+        eh, el = _end(lh, ll, ld)
         c = nonempty & (last >= 0) & _less(bh, bl, eh, el)
         cov.append(c)
         vals.append(m.log_odds[leaf])
-        exact.append(c & morton.words_equal(m.code[leaf], jnp.stack([bh, bl], -1))
-                     & (eh == nh) & (el == nl))
+        exact.append(c & (lh == bh) & (ll == bl) & (eh == nh) & (el == nl))
     # 3. one value per interval (sum: map order, clamped after each map, as the fold of fuse)
     p = m0.params
     lo_c, hi_c = p.clamp_min_log_odds, p.clamp_max_log_odds
@@ -633,12 +687,11 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
         known = known | cov[k]
     n_known = sum(c.astype(jnp.int32) for c in cov)
     # 4. decompose the known intervals into aligned cells, laid out in order
-    n_cells = jnp.where(known, _gap_plan(bh, bl, nh, nl), 0)
-    table = dict(count=n_cells, n_before=n_cells, self_emit=jnp.zeros_like(known),
-                 gb=(bh, bl, nh, nl), ga=(bh, bl, nh, nl), self_val=acc, gap_val=acc,
-                 depth=jnp.full((n_b,), _D, jnp.int32))
-    out, total = _assemble([table], [jnp.zeros((n_b,), jnp.int32)], capacity, p,
-                           m0.resolution, m0.tree_depth)
+    n_cells = _materialize(m0.count >= 0, jnp.where(known, _gap_plan(bh, bl, nh, nl), 0))
+    ends = _cumsum(n_cells)
+    total = ends[-1].astype(jnp.int32)
+    out = _emit(capacity, total, [], [(ends - n_cells, n_cells, bh, bl, nh, nl, jnp.clip(acc, lo_c, hi_c))],
+                p, m0.resolution, m0.tree_depth)
     if do_prune:
         out = tree._prune_runs(out)
     n_exact = sum(e.astype(jnp.int32) for e in exact)
