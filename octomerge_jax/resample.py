@@ -465,12 +465,15 @@ def _resample_chunk(m, table, A, c, K_d, K_s, bkeys, wb, wrows, bvalid, mode):
         """Offsets ``f`` (3 x (B, 512) f32) and, per axis ``i`` and bit ``b``, the neighbour
         key ``k0 + b`` packed in one int32: window brick ``q 3^i`` (bits 16+), out-of-window
         flag (bit 13) and local Morton bits (bits 0-8), so a corner sums three of them."""
-        # eq. 5.13 in key units, relative to K_s
-        keys = bkeys[:, None, :] * _B + jnp.asarray(_LOCAL)  # (B, 512, 3) destination keys
-        uu = (keys - K_d).astype(jnp.float32) @ A.T + c
+        # eq. 5.13 in key units, relative to K_s: per brick corner plus per local offset
+        # (elementwise, not a matmul, so the rounding does not depend on the chunk size)
+        d0 = (bkeys * _B - K_d).astype(jnp.float32)  # (B, 3)
+        dl = jnp.asarray(_LOCAL, jnp.float32)  # (512, 3)
         f, packed, misses = [], [], jnp.int32(0)
         for i in range(3):
-            u = uu[..., i]
+            u0 = d0[:, 0] * A[i, 0] + d0[:, 1] * A[i, 1] + d0[:, 2] * A[i, 2] + c[i]
+            du = dl[:, 0] * A[i, 0] + dl[:, 1] * A[i, 1] + dl[:, 2] * A[i, 2]
+            u = u0[:, None] + du[None, :]
             base = jnp.floor(u)
             fi = u - base
             # Snap offsets within float32 noise of a lattice point (exact whole-voxel moves).
