@@ -447,9 +447,10 @@ def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth):
     computes its cell in closed form (``_gap_cell``).
     """
     cap = capacity
-    self_rows = jnp.zeros((cap, 4), jnp.int32)  # hi, lo, depth + 1 (0: not a self cell), value
+    self_rows = jnp.zeros((cap, 3), jnp.int32)  # hi | (depth + 1) << 25 (0: no self cell), lo, value
     for slot, h, l, d, v in selfs:
-        self_rows = self_rows.at[slot].set(jnp.stack([h, l, d + 1, _bits(v)], -1), mode="drop")
+        rows = jnp.stack([h | jnp.left_shift(d + 1, 25), l, _bits(v)], -1)
+        self_rows = self_rows.at[slot].set(rows, mode="drop")
     gap_rows = jnp.zeros((cap, 6), jnp.int32)  # s_hi, s_lo, e_hi, e_lo, value, start slot + 1
     for slot, n, sh, sl, eh, el, v in gaps:
         slot = jnp.where(n > 0, slot, cap)
@@ -461,12 +462,13 @@ def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth):
     g0, g1, g2, g3 = g[:, 0], g[:, 1], g[:, 2], g[:, 3]
     info = _materialize(total >= 0, _gap_cell_info(g0, g1, g2, g3, q - start))
     ch, cl, cd = _cell_code(g0, g1, g2, g3, info)
-    is_self = self_rows[:, 2] > 0
+    self_depth = jnp.right_shift(self_rows[:, 0], 25) - 1
+    is_self = self_depth >= 0
     ok = q < total
-    hi = jnp.where(ok, jnp.where(is_self, self_rows[:, 0], ch), _SENT)
+    hi = jnp.where(ok, jnp.where(is_self, self_rows[:, 0] & ((1 << 25) - 1), ch), _SENT)
     lo = jnp.where(ok, jnp.where(is_self, self_rows[:, 1], cl), 0)
-    depth = jnp.where(ok, jnp.where(is_self, self_rows[:, 2] - 1, cd), _D)
-    val = jax.lax.bitcast_convert_type(jnp.where(is_self, self_rows[:, 3], g[:, 4]), jnp.float32)
+    depth = jnp.where(ok, jnp.where(is_self, self_depth, cd), _D)
+    val = jax.lax.bitcast_convert_type(jnp.where(is_self, self_rows[:, 2], g[:, 4]), jnp.float32)
     val = jnp.where(ok, val, 0.0)
     return OccupancyMap(jnp.stack([hi, lo], -1), depth, val, jnp.minimum(total, cap).astype(jnp.int32),
                         params, resolution, tree_depth)
