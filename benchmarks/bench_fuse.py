@@ -178,11 +178,12 @@ def bench_many(shape, ms, repeats):
             lo = int(k * 0.7 * width)
             vals = f1 if k % 2 == 0 else f2
             maps.append(crop_map(keys, vals, (x >= lo) & (x < lo + int(width)), ml=(k % 2 == 1)))
-        # plan the fold's capacities once (host), then time the steady fold with them
+        # plan the fold's capacities once (host), then time the steady fold with them; every
+        # call (each fold step and fuse_many) runs at its own refinement's bucket
         caps, acc = [], maps[0]
         for mk in maps[1:]:
             acc, rep = F.fuse(acc, mk, return_report=True)
-            caps.append(rep.capacity)
+            caps.append(omap.bucket_capacity(int(rep.refined_cells)))
         fold_out = acc
 
         def fold():
@@ -192,7 +193,7 @@ def bench_many(shape, ms, repeats):
             return a.code
 
         many_out, rep = F.fuse_many(maps, return_report=True)
-        cap = rep.capacity
+        cap = omap.bucket_capacity(int(rep.refined_cells))
         _, tf = timed(fold, repeats)
         _, tm = timed(lambda: F.fuse_many(maps, capacity=cap).code, repeats)
         n = fold_out.num_leaves

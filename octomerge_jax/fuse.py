@@ -620,7 +620,7 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
             return _fuse_pair(maps[0], maps[1], w[0], w[1], mode, cap, bool(prune))
         return _fuse_many(tuple(maps), w, mode, cap, bool(prune))
 
-    guess = 0 if traced else (1 if len(maps) == 2 else 2) * sum(int(m.count) for m in maps)
+    guess = 0 if traced else sum(int(m.count) for m in maps)
     return _finish(run, guess, capacity, traced, return_report, "fuse_many")
 
 
