@@ -26,9 +26,29 @@ jaxopt is not imported.)
 **Coarse stages.** The grids of all but the last stage store, per cell, the centroids of the
 occupied half-size sub-cells (a voxel-grid downsample at ``d/2``, like the thesis code's PCL
 VoxelGrid at 10 res), at most 8 per cell, so the fixed ``cell_capacity`` never drops data there;
-the last stage matches the target points themselves. At the last stage ICP stops when the
-change falls below ``final_epsilon`` (default ``transformation_epsilon / 100``), so that it
-reaches the exact fixed point (noise-free clouds register to ~1e-6).
+the last stage matches the target points themselves. Matching source points to that smoothed
+target (``coarse_matching="centroid"``, default) widens the basin of convergence (a yaw of
+0.15 rad plus 0.5 m on the test room is recovered exactly; Open3D from the same start stops at
+0.034 rad), at the price of a biased coarse fixed point: started *at* the truth of a partial
+overlap it can settle 0.01 rad away, where the last stage's exact energy has a local minimum
+(Open3D stays at 0.0003 rad). ``coarse_matching="nearest"`` uses the exact nearest target point
+whenever one lies within the floor distance (Open3D's fixed point; its narrower basin).
+
+**Stopping.** A stage ends when the change falls below ``epsilon`` or, on coarse stages, when
+the truncated energy (mean of ``min(d^2, d_stage^2)``) has not improved by 0.1 % for 3
+iterations (centroid matches jitter, so the change may never get below ``epsilon`` there). At
+the last stage ICP stops when the change falls below ``final_epsilon`` (default
+``transformation_epsilon / 100``), so that it reaches the exact fixed point (noise-free clouds
+register to ~1e-6).
+
+**Anderson acceleration** (Walker & Ni 2011; for ICP: Pavlov et al. 2018, Zhang et al. 2021).
+Point-to-point ICP converges linearly and slowly along sliding directions (walls, corridors).
+Each stage extrapolates the fixed-point map ``T -> Kabsch(matches(T))`` from the last 5
+iterates in 6-vector coordinates (rotation vector, translation) about the stage's first
+transform, and keeps an accelerated iterate only if it lowers the truncated energy; otherwise
+it falls back to the plain step and restarts the history (so the energy decreases as in plain
+ICP). The fixed point, and so the result and its derivative, are those of plain ICP; to reach
+it takes about half the iterations (178-195 -> 78-111 on the test room at 0.2 m).
 
 **Differentiation: implicit, at the fixed point.** The converged transform ``T*`` satisfies the
 optimality condition ``g(T*; source, target[c]) = 0`` of eq. 3.18 with the last correspondences
@@ -78,6 +98,9 @@ __all__ = [
 STATUS_CONVERGED = 0
 STATUS_MAX_ITERATIONS = 1
 STATUS_TOO_FEW_INLIERS = 2
+COARSE_MATCHING = ("centroid", "nearest")
+_ANDERSON = 5  # history length of the Anderson acceleration (0: plain ICP)
+_STALL_REL, _STALL_PATIENCE = 1e-3, 3  # a coarse stage ends when its energy stalls
 
 
 @jax.tree_util.register_dataclass
@@ -92,6 +115,8 @@ class IcpResult:
       (smallest) correspondence distance under ``T_target_source``.
     - ``rmse``: ``()`` float32 [m], root mean square inlier distance.
     - ``fitness``: ``()`` float32, ``num_inliers / valid source points``.
+    - ``num_close``: ``()`` int32, source points within a quarter of the floor distance
+      (half a voxel at the defaults): the tight overlap ``icp_multi`` ranks candidates by.
     - ``correspondence_distance``: ``()`` float32 [m], the distance of the last stage reached.
     - ``status``: ``()`` int32, see module docstring.
     - ``grid_overflow``: ``()`` int32, target points dropped by the final-stage grid (0 means
@@ -106,6 +131,7 @@ class IcpResult:
     num_inliers: jax.Array
     rmse: jax.Array
     fitness: jax.Array
+    num_close: jax.Array
     correspondence_distance: jax.Array
     status: jax.Array
     grid_overflow: jax.Array
@@ -116,9 +142,15 @@ class IcpResult:
 @dataclasses.dataclass(frozen=True)
 class IcpMultiResult:
     """``icp_multi`` output: the best candidate, every candidate (leading axis ``k``), the
-    index of the best, the scores (``num_inliers - rmse / d_floor``, higher is better) and the
-    initial guesses used (``(k, 4, 4)``). Inliers and rmse are measured at the floor distance
-    for every candidate."""
+    index of the best, the scores (``num_close - rmse / d_floor``, higher is better) and the
+    initial guesses used (``(k, 4, 4)``). Counts and rmse are measured at the returned
+    transforms for every candidate.
+
+    Why ``num_close`` (points within ``d_floor / 4``) and not ``num_inliers`` (within
+    ``d_floor``): a room turned by pi onto itself fits many points within two voxels, but
+    fewer within half a voxel than the right alignment (measured on the test room at 0.5 rad:
+    right 7.7-7.9k vs flipped 7.5k close points, while the inlier counts were 10.5-10.7k vs
+    10.7k)."""
 
     best: IcpResult
     candidates: IcpResult
@@ -224,8 +256,53 @@ def _implicit_step(T_hat, src, tgt_pts, w):
     return T_hat + (Xi - jax.lax.stop_gradient(Xi)) @ T_hat
 
 
+def _so3_exp(w):
+    """Rotation matrix of the rotation vector ``w (3,)`` [rad] (Rodrigues)."""
+    th2 = jnp.sum(w * w)
+    small = th2 < 1e-8
+    th = jnp.sqrt(jnp.where(small, 1.0, th2))
+    a = jnp.where(small, 1.0 - th2 / 6.0, jnp.sin(th) / th)
+    b = jnp.where(small, 0.5 - th2 / 24.0, (1.0 - jnp.cos(th)) / jnp.where(small, 1.0, th2))
+    K = _skew(w)
+    return jnp.eye(3, dtype=w.dtype) + a * K + b * (K @ K)
+
+
+def _so3_log(R):
+    """Rotation vector ``(3,)`` [rad] of ``R (3, 3)`` (angle < pi; accurate for small angles)."""
+    v = jnp.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    s2 = jnp.sqrt(jnp.sum(v * v))  # 2 sin(theta)
+    th = jnp.arctan2(0.5 * s2, 0.5 * (jnp.trace(R) - 1.0))
+    f = jnp.where(s2 < 1e-7, 0.5, th / jnp.where(s2 < 1e-7, 1.0, s2))
+    return f * v
+
+
+def _chart(T, T_ref):
+    """6-vector coordinates ``(rotation vector of R R_ref^T, t - t_ref)`` of ``T`` about ``T_ref``."""
+    return jnp.concatenate([_so3_log(T[:3, :3] @ T_ref[:3, :3].T), T[:3, 3] - T_ref[:3, 3]])
+
+
+def _unchart(x, T_ref):
+    return rigid.from_rotation_translation(_so3_exp(x[:3]) @ T_ref[:3, :3], x[3:] + T_ref[:3, 3])
+
+
+def _anderson(x_g, f, dF, dG, n_hist):
+    """Anderson acceleration (type II, Walker & Ni 2011) of the fixed-point map ``x -> g``:
+    ``x_g - dG gamma`` with ``gamma = argmin |f - dF gamma|``; ``dF, dG (m, 6)`` hold the
+    last ``n_hist`` differences of residuals ``f = g - x`` and of images ``g`` (older rows
+    zero)."""
+    m = dF.shape[0]
+    used = (jnp.arange(m) < n_hist).astype(f.dtype)
+    A = dF * used[:, None]
+    M = A @ A.T
+    reg = 1e-8 * jnp.max(jnp.diag(M)) + 1e-20
+    gamma = jnp.linalg.solve(M + reg * jnp.eye(m, dtype=f.dtype) + jnp.diag(1.0 - used), A @ f)
+    x = x_g - (dG * used[:, None]).T @ gamma
+    return jnp.where(jnp.all(jnp.isfinite(x)), x, x_g)
+
+
 def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final_epsilon,
-              min_inliers, max_iterations: int):
+              min_inliers, max_iterations: int, anderson: int | None = None,
+              coarse_matching: str = "centroid"):
     """One registration on padded clouds with pre-built stage grids (vmappable over T_init)."""
     src_sg = jax.lax.stop_gradient(source)
     n = source.shape[0]
@@ -233,40 +310,111 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
     src_sg = jnp.where(valid[:, None], src_sg, 0.0)
     num_stages = dists.shape[0]
     T0 = jax.lax.stop_gradient(jnp.asarray(T_init, jnp.float32))
+    last_stage = num_stages - 1
+    d_floor2 = dists[last_stage] * dists[last_stage]
+    anderson = _ANDERSON if anderson is None else int(anderson)
+    m_hist = max(anderson, 1)
 
     def correspond(T, stage):
+        # coarse stages: the nearest sub-cell centroid of the stage's grid ("centroid"), or
+        # the exact nearest target point when one lies within the floor distance and the
+        # nearest centroid otherwise ("nearest"); last stage: the exact nearest point
         p = rigid.transform_points(T, src_sg)
-        d2, idx, match = neighbors.nearest_with_points(grids, p, stage)
+        if coarse_matching == "centroid":
+            return _finish_match(*jax.lax.cond(
+                stage == last_stage, lambda _: neighbors.nearest_with_points(grids, p, last_stage),
+                lambda _: neighbors.nearest_with_points(grids, p, stage), None), stage)
+        d2, idx, match = neighbors.nearest_with_points(grids, p, last_stage)
+        fine = (idx >= 0) & (d2 <= d_floor2)
+
+        def coarse(_):
+            d2c, idxc, matchc = neighbors.nearest_with_points(grids, p, stage)
+            return (jnp.where(fine, d2, d2c), jnp.where(fine, idx, idxc),
+                    jnp.where(fine[:, None], match, matchc))
+
+        return _finish_match(*jax.lax.cond(stage == last_stage, lambda _: (d2, idx, match), coarse, None),
+                             stage)
+
+    def _finish_match(d2, idx, match, stage):
         dmax = dists[stage]
         w = valid & (idx >= 0) & (d2 <= dmax * dmax)
         return d2, jnp.maximum(idx, 0), w, match
 
+    def energy(d2, stage):
+        # truncated least squares: mean over valid points of min(d^2, d_stage^2), comparable
+        # between iterates of one stage (the safeguard of the accelerated steps)
+        dmax2 = dists[stage] * dists[stage]
+        return jnp.sum(jnp.where(valid, jnp.minimum(d2, dmax2), 0.0)) / jnp.maximum(source_count, 1).astype(jnp.float32)
+
+    zero6 = jnp.zeros((6,), jnp.float32)
+    hist0 = jnp.zeros((m_hist, 6), jnp.float32)
+
     def body(state):
-        T, stage, it, done, status = state[:5]
-        _, idx, w, match = correspond(T, stage)
+        (T, stage, it, done, status, idx_k, w_k, match_k, T_plain, accel, E_prev, T_ref, dF, dG, n_hist,
+         f_prev, g_prev, E_best, stall) = state
+        d2, idx, w, match = correspond(T, stage)
+        E = energy(d2, stage)
+        # safeguard (Zhang et al. 2021, "Fast and robust ICP"): an accelerated iterate that
+        # does not lower the energy is replaced by the plain step it extrapolated from
+        reject = accel & ~(E < E_prev)
         n_in = jnp.sum(w)
         enough = n_in >= min_inliers
-        T_new = jnp.where(enough, _kabsch(src_sg, jnp.where(w[:, None], match, 0.0), w), T)
-        change = jnp.sum(jnp.abs(T_new - T))
-        last = stage == num_stages - 1
-        small = change < jnp.where(last, final_epsilon, epsilon)
-        done_now = (small & last) | ~enough
+        G = jnp.where(enough, _kabsch(src_sg, jnp.where(w[:, None], match, 0.0), w), T)
+        change = jnp.sum(jnp.abs(G - T))
+        last = stage == last_stage
+        # a stage also ends when its energy stalls: no new best by a relative margin for
+        # _STALL_PATIENCE iterations (coarse stages jitter between centroid matches and the
+        # transform change may never fall below epsilon there)
+        better = E < E_best * (1.0 - _STALL_REL)
+        stall = jnp.where(better | reject, 0, stall + 1)
+        E_best = jnp.minimum(E_best, E)
+        stalled = (stall >= _STALL_PATIENCE) & ~last  # the last stage's energy is exact: no stall test
+        small = ((change < jnp.where(last, final_epsilon, epsilon)) | stalled) & ~reject
+        finish = ((small & last) | ~enough) & ~reject
+        advance = small & ~last
+        # Anderson step in the chart about T_ref (history restarts on rejection / new stage)
+        g = _chart(G, T_ref)
+        f = g - _chart(T, T_ref)
+        has_prev = n_hist > 0
+        dF_new = jnp.where(has_prev, jnp.roll(dF, 1, 0).at[0].set(f - f_prev), dF)
+        dG_new = jnp.where(has_prev, jnp.roll(dG, 1, 0).at[0].set(g - g_prev), dG)
+        n_used = jnp.minimum(n_hist, m_hist)
+        x_acc = _anderson(g, f, dF_new, dG_new, n_used) if anderson > 0 else g
+        use_acc = (n_used > 0) & (anderson > 0)
+        T_acc = jnp.where(use_acc, _unchart(x_acc, T_ref), G)
+        restart = reject | advance
+        T_next = jnp.where(reject, T_plain, jnp.where(advance | finish, G, T_acc))
         new_status = jnp.where(~enough, STATUS_TOO_FEW_INLIERS, STATUS_CONVERGED)
-        stage = jnp.where(small & ~last, stage + 1, stage)
-        return (T_new, stage, it + 1, done_now, jnp.where(done_now, new_status, status).astype(jnp.int32),
-                idx, w, match)
+        keep = reject  # a rejected iterate's correspondences are not used
+        return (T_next,
+                jnp.where(advance, stage + 1, stage),
+                it + 1,
+                finish,
+                jnp.where(finish, new_status, status).astype(jnp.int32),
+                jnp.where(keep, idx_k, idx), jnp.where(keep, w_k, w), jnp.where(keep, match_k, match),
+                jnp.where(keep, T_plain, G),
+                use_acc & ~restart & ~finish,
+                jnp.where(restart, jnp.inf, E),
+                jnp.where(restart, T_next, T_ref),
+                jnp.where(restart, hist0, dF_new), jnp.where(restart, hist0, dG_new),
+                jnp.where(restart, 0, jnp.minimum(n_hist + 1, m_hist + 1)).astype(jnp.int32),
+                jnp.where(restart, zero6, f), jnp.where(restart, zero6, g),
+                jnp.where(advance, jnp.inf, E_best), jnp.where(advance, 0, stall).astype(jnp.int32))
 
     def cond(state):
         return (~state[3]) & (state[2] < max_iterations)
 
     init = (T0, jnp.int32(0), jnp.int32(0), jnp.bool_(False), jnp.int32(STATUS_MAX_ITERATIONS),
-            jnp.zeros((n,), jnp.int32), jnp.zeros((n,), bool), jnp.zeros((n, 3), jnp.float32))
-    T, stage, it, done, status, idx, w, match = jax.lax.while_loop(cond, body, init)
+            jnp.zeros((n,), jnp.int32), jnp.zeros((n,), bool), jnp.zeros((n, 3), jnp.float32),
+            T0, jnp.bool_(False), jnp.float32(jnp.inf), T0, hist0, hist0, jnp.int32(0), zero6, zero6,
+            jnp.float32(jnp.inf), jnp.int32(0))
+    state = jax.lax.while_loop(cond, body, init)
+    _, stage, it, done, status, idx, w, match, T = state[:9]
     status = jnp.where(done, status, STATUS_MAX_ITERATIONS).astype(jnp.int32)
 
     # final report at the returned transform and the floor distance (a common yardstick, so
     # that icp_multi can rank candidates that stopped at different stages)
-    d2, _, w_fin, _ = correspond(T, jnp.int32(num_stages - 1))
+    d2, _, w_fin, _ = correspond(T, jnp.int32(last_stage))
     n_in = jnp.sum(w_fin).astype(jnp.int32)
     rmse = jnp.sqrt(jnp.sum(jnp.where(w_fin, d2, 0.0)) / jnp.maximum(n_in, 1).astype(jnp.float32))
     n_valid = jnp.maximum(source_count, 1).astype(jnp.float32)
@@ -284,6 +432,7 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
         num_inliers=n_in,
         rmse=rmse,
         fitness=n_in.astype(jnp.float32) / n_valid,
+        num_close=jnp.sum(w_fin & (d2 <= d_floor2 / 16.0)).astype(jnp.int32),
         correspondence_distance=dists[stage],
         status=status,
         grid_overflow=grids.overflow[stage],
@@ -300,12 +449,13 @@ def _build(target, target_count, dists, table_sizes, cell_capacity):
                                  centroid_levels=cl)
 
 
-@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes"))
+@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching"))
 def _icp_padded_jit(source, source_count, target, target_count, T_init, dists, epsilon,
-                    final_epsilon, min_inliers, *, max_iterations, cell_capacity, table_sizes):
+                    final_epsilon, min_inliers, *, max_iterations, cell_capacity, table_sizes,
+                    coarse_matching):
     grids = _build(target, target_count, dists, table_sizes, cell_capacity)
     return _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final_epsilon,
-                     min_inliers, max_iterations)
+                     min_inliers, max_iterations, coarse_matching=coarse_matching)
 
 
 def _table_sizes(capacity, dists, table_sizes):
@@ -318,14 +468,17 @@ def _table_sizes(capacity, dists, table_sizes):
 
 def icp_padded(source, source_count, target, target_count, T_target_source_init, dists,
                epsilon, final_epsilon=None, min_inliers=6, *, max_iterations: int = 100,
-               cell_capacity: int = 8, table_sizes: tuple[int, ...] | None = None) -> IcpResult:
+               cell_capacity: int = 8, table_sizes: tuple[int, ...] | None = None,
+               coarse_matching: str = "centroid") -> IcpResult:
     """ICP on padded clouds, jitted: ``source (Ns, 3)``, ``target (Nt, 3)`` float32 [m] whose
     rows ``>= *_count`` are padding, ``T_target_source_init (4, 4)``, stage distances
     ``dists (s,)`` [m] (``stage_distances``), ``epsilon`` (stage change threshold, sum of
     ``|dT|``), ``final_epsilon`` (threshold at the last stage, default ``epsilon / 100``) and
     ``min_inliers`` are traced; ``max_iterations``, ``cell_capacity`` and ``table_sizes``
-    (default ``neighbors.level_table_sizes(Nt, dists)``, needs concrete ``dists``) are static.
-    Pure and ``vmap``-able over stacked pairs of one bucket (pass ``table_sizes`` then)."""
+    (default ``neighbors.level_table_sizes(Nt, dists)``, needs concrete ``dists``) and
+    ``coarse_matching`` (see ``icp``) are static. Pure and ``vmap``-able over stacked pairs of
+    one bucket (pass ``table_sizes`` then)."""
+    _check_choice(coarse_matching)
     ts = _table_sizes(target.shape[0], dists, table_sizes)
     epsilon = jnp.asarray(epsilon, jnp.float32)
     final_epsilon = epsilon * 0.01 if final_epsilon is None else jnp.asarray(final_epsilon, jnp.float32)
@@ -333,7 +486,13 @@ def icp_padded(source, source_count, target, target_count, T_target_source_init,
                            jnp.asarray(T_target_source_init, jnp.float32),
                            jnp.asarray(dists, jnp.float32), epsilon, final_epsilon,
                            jnp.asarray(min_inliers, jnp.int32), max_iterations=int(max_iterations),
-                           cell_capacity=int(cell_capacity), table_sizes=ts)
+                           cell_capacity=int(cell_capacity), table_sizes=ts,
+                           coarse_matching=coarse_matching)
+
+
+def _check_choice(coarse_matching):
+    if coarse_matching not in COARSE_MATCHING:
+        raise ValueError(f"coarse_matching must be one of {COARSE_MATCHING}, got {coarse_matching!r}")
 
 
 def _is_traced(*xs) -> bool:
@@ -383,7 +542,7 @@ def icp(source, target, T_target_source_init, *, resolution: float,
         min_correspondence_distance: float | None = None, shrink_factor: float = 0.5,
         transformation_epsilon: float | None = None, max_iterations: int = 100,
         cell_capacity: int = 8, min_inliers: int = 6, swap_larger: bool = True,
-        source_count=None, target_count=None) -> IcpResult:
+        coarse_matching: str = "centroid", source_count=None, target_count=None) -> IcpResult:
     """Register ``source`` to ``target`` (Alg. 3): returns ``IcpResult`` whose
     ``T_target_source`` maps source points into the target frame.
 
@@ -393,13 +552,21 @@ def icp(source, target, T_target_source_init, *, resolution: float,
     ``resolution`` [m] sets the defaults: distances ``10 res -> 2 res`` halving, epsilon
     ``res / 60`` (sum of absolute entry changes of T). Differentiable w.r.t. the point
     coordinates (implicit differentiation at the fixed point, see module docstring).
+
+    ``coarse_matching``: ``"centroid"`` (default) matches coarse stages to the target's
+    voxel-grid centroids at ``d / 2`` (a smoothed target, like the thesis code's VoxelGrid
+    downsampling: a wider basin of convergence); ``"nearest"`` matches the exact nearest target
+    point whenever one lies within the floor distance (Open3D's semantics: the same fixed point
+    as Open3D near the solution, a narrower basin). The last stage always matches exact nearest
+    points.
     """
     dists, eps = _options(resolution, max_correspondence_distance, min_correspondence_distance,
                           shrink_factor, transformation_epsilon, max_iterations, cell_capacity)
     T0 = _check_T(T_target_source_init, "T_target_source_init")
     s, sc, s_host = _prepare(source, source_count, "source")
     t, tc, t_host = _prepare(target, target_count, "target")
-    kw = dict(max_iterations=int(max_iterations), cell_capacity=int(cell_capacity))
+    kw = dict(max_iterations=int(max_iterations), cell_capacity=int(cell_capacity),
+              coarse_matching=coarse_matching)
     if swap_larger and s_host is not None and t_host is not None and s_host > t_host:
         r = icp_padded(t, tc, s, sc, rigid.inverse(T0), dists, eps, min_inliers=min_inliers, **kw)
         return _invert_result(r)
@@ -430,15 +597,15 @@ def default_hypotheses(T_target_source_init, center, yaw_step_rad: float = np.pi
     return C @ D @ rigid.inverse(C) @ T0
 
 
-@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes"))
+@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching"))
 def _icp_multi_padded(source, source_count, target, target_count, hypotheses, dists, epsilon,
                       final_epsilon, min_inliers, *, max_iterations: int, cell_capacity: int,
-                      table_sizes: tuple[int, ...]):
+                      table_sizes: tuple[int, ...], coarse_matching: str):
     grids = _build(target, target_count, dists, table_sizes, cell_capacity)
     run = lambda T: _icp_core(source, source_count, target, grids, T, dists, epsilon, final_epsilon,
-                              min_inliers, max_iterations)
+                              min_inliers, max_iterations, coarse_matching=coarse_matching)
     cands = jax.vmap(run)(hypotheses)
-    scores = cands.num_inliers.astype(jnp.float32) - cands.rmse / dists[-1]
+    scores = cands.num_close.astype(jnp.float32) - cands.rmse / dists[-1]
     best = jnp.argmax(scores).astype(jnp.int32)
     best_res = jax.tree_util.tree_map(lambda a: a[best], cands)
     return IcpMultiResult(best_res, cands, best, scores, hypotheses)
@@ -450,15 +617,18 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
               min_correspondence_distance: float | None = None, shrink_factor: float = 0.5,
               transformation_epsilon: float | None = None, max_iterations: int = 100,
               cell_capacity: int = 8, min_inliers: int = 6, swap_larger: bool = True,
-              source_count=None, target_count=None) -> IcpMultiResult:
+              coarse_matching: str = "centroid", source_count=None,
+              target_count=None) -> IcpMultiResult:
     """Multi-hypothesis ICP: ``vmap`` of ``icp`` over initial guesses sharing one set of
-    target grids; returns the best by inlier count, ties broken by inlier rmse
-    (``score = num_inliers - rmse / d_floor``, both at the floor distance), plus every candidate.
+    target grids; returns the best by the number of source points within a quarter of the floor
+    distance, ties broken by inlier rmse (``score = num_close - rmse / d_floor``), plus every
+    candidate.
 
     ``hypotheses``: ``(k, 4, 4)`` absolute initial guesses ``T_target_source``; by default
     ``default_hypotheses(T_target_source_init, centroid of T_init * source, yaw_step_rad,
     roll_pitch_offset_rad)`` (12 yaws + 4 roll/pitch offsets = 16). Other arguments as ``icp``.
     """
+    _check_choice(coarse_matching)
     dists, eps = _options(resolution, max_correspondence_distance, min_correspondence_distance,
                           shrink_factor, transformation_epsilon, max_iterations, cell_capacity)
     T0 = _check_T(T_target_source_init, "T_target_source_init")
@@ -481,7 +651,8 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
         hyps = rigid.inverse(hyps)
     out = _icp_multi_padded(s, sc, t, tc, hyps, dists, eps, eps * 0.01, jnp.asarray(min_inliers, jnp.int32),
                             max_iterations=int(max_iterations), cell_capacity=int(cell_capacity),
-                            table_sizes=neighbors.level_table_sizes(t.shape[0], np.asarray(dists)))
+                            table_sizes=neighbors.level_table_sizes(t.shape[0], np.asarray(dists)),
+                            coarse_matching=coarse_matching)
     if swap:
         out = IcpMultiResult(_invert_result(out.best), _invert_result(out.candidates), out.best_index,
                              out.scores, rigid.inverse(out.hypotheses))

@@ -239,8 +239,9 @@ def _nearest_block(xyz, index, base, mask, origin, dims, dense, h, q):
         d2 = d2 + (pa - q[:, None, None, a]) ** 2
     b, k = q.shape[0], xyz.shape[-1]
     d2 = d2.reshape(b, 27 * k)
-    j = jnp.argmin(d2, axis=-1)
-    best = jnp.take_along_axis(d2, j[:, None], axis=-1)[:, 0]
+    # min, then the first slot attaining it (= argmin; XLA's CPU argmin reduction is ~2x slower)
+    best = jnp.min(d2, axis=-1)
+    j = jnp.argmax(d2 == best[:, None], axis=-1)
     row = jnp.take_along_axis(rows, (j // k)[:, None], axis=-1)[:, 0]
     idx = index[row, j % k]
     found = (idx >= 0) & finite
