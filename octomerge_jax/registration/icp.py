@@ -320,10 +320,8 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
         # the exact nearest target point when one lies within the floor distance and the
         # nearest centroid otherwise ("nearest"); last stage: the exact nearest point
         p = rigid.transform_points(T, src_sg)
-        if coarse_matching == "centroid":
-            return _finish_match(*jax.lax.cond(
-                stage == last_stage, lambda _: neighbors.nearest_with_points(grids, p, last_stage),
-                lambda _: neighbors.nearest_with_points(grids, p, stage), None), stage)
+        if coarse_matching == "centroid":  # one query; the level is data (no cond: vmap-friendly)
+            return _finish_match(*neighbors.nearest_with_points(grids, p, stage), stage)
         d2, idx, match = neighbors.nearest_with_points(grids, p, last_stage)
         fine = (idx >= 0) & (d2 <= d_floor2)
 
