@@ -240,3 +240,41 @@ def test_report_is_frozen_and_summary(merged_icp):
         rep.status = "x"
     s = rep.summary()
     assert "epsilon_r" in s and "ICP (icp): converged" in s
+
+
+def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
+    """refine="icp+dense": a dense failure from ICP's result (ICP in a wrong basin) retries dense
+    from the initial guess; if that fails too, ICP's transform is kept and both failures are
+    reported. (The dense solver is stubbed: this checks the pipeline's fallback logic.)"""
+    import octomerge_jax.pipeline as pipeline_mod
+
+    m1, m2, T = small_pair()
+    guess = perturbed()
+    starts = []
+
+    def fake_dense(outcomes):
+        def run(_m1, _m2, T_start, timings, warnings):
+            starts.append(np.asarray(T_start, np.float64))
+            status = outcomes[len(starts) - 1]
+            info = {"status": status, "converged": status == 0, "agreement": 0.5, "loss": 0.0,
+                    "num_iterations": 3}
+            if status in (0, 1):
+                return T, info, None  # "recovers" the truth
+            warnings.append(f"dense alignment failed (status {status})")
+            return np.asarray(T_start, np.float64), info, None
+        return run
+
+    monkeypatch.setattr(pipeline_mod, "_refine_dense", fake_dense([2, 0]))
+    _, rep = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T)
+    assert len(starts) == 2
+    np.testing.assert_allclose(starts[1], guess)  # second start: the initial guess
+    assert not np.allclose(starts[0], guess)  # first start: ICP's result
+    np.testing.assert_allclose(rep.T_1_2, T, atol=1e-6)
+    assert rep.icp["dense"]["status"] == 0 and "initial guess" in rep.icp["dense"]["started_from"]
+
+    starts.clear()
+    monkeypatch.setattr(pipeline_mod, "_refine_dense", fake_dense([2, 3]))
+    _, rep2 = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T)
+    assert len(starts) == 2
+    np.testing.assert_allclose(rep2.T_1_2, starts[0], atol=1e-5)  # ICP's transform kept
+    assert sum("dense alignment failed" in w for w in rep2.warnings) == 2
