@@ -321,12 +321,12 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
         # nearest centroid otherwise ("nearest"); last stage: the exact nearest point
         p = rigid.transform_points(T, src_sg)
         if coarse_matching == "centroid":  # one query; the level is data (no cond: vmap-friendly)
-            return _finish_match(*neighbors.nearest_with_points(grids, p, stage), stage)
-        d2, idx, match = neighbors.nearest_with_points(grids, p, last_stage)
+            return _finish_match(*neighbors.nearest_with_points(grids, p, stage, source_count), stage)
+        d2, idx, match = neighbors.nearest_with_points(grids, p, last_stage, source_count)
         fine = (idx >= 0) & (d2 <= d_floor2)
 
         def coarse(_):
-            d2c, idxc, matchc = neighbors.nearest_with_points(grids, p, stage)
+            d2c, idxc, matchc = neighbors.nearest_with_points(grids, p, stage, source_count)
             return (jnp.where(fine, d2, d2c), jnp.where(fine, idx, idxc),
                     jnp.where(fine[:, None], match, matchc))
 

@@ -261,9 +261,11 @@ def nearest(grid: HashGrid, queries, level=0):
     return d2, idx
 
 
-def nearest_with_points(grid: HashGrid, queries, level=0):
+def nearest_with_points(grid: HashGrid, queries, level=0, count=None):
     """As ``nearest``, plus the matched coordinates ``(n, 3)`` (the stored point, or the
-    sub-cell centroid on a centroid level). Queries are processed in blocks of 2048."""
+    sub-cell centroid on a centroid level). Queries are processed in blocks of 2048; with
+    ``count`` (traced int), rows ``>= count`` are padding: blocks entirely past it are skipped
+    (their rows get ``inf`` / ``-1`` / zeros)."""
     level = jnp.asarray(level, jnp.int32)
     base, mask, h = grid.base[level], grid.mask[level], grid.cell_size[level]
     origin, dims, dense = grid.origin[level], grid.dims[level], grid.dense[level]
@@ -272,7 +274,20 @@ def nearest_with_points(grid: HashGrid, queries, level=0):
     f = lambda qb: _nearest_block(grid.xyz, grid.index, base, mask, origin, dims, dense, h, qb)
     if n <= _CHUNK or n % _CHUNK:
         return f(q)
-    d2, idx, match = jax.lax.map(f, q.reshape(n // _CHUNK, _CHUNK, 3))
+    blocks = q.reshape(n // _CHUNK, _CHUNK, 3)
+    if count is None:
+        d2, idx, match = jax.lax.map(f, blocks)
+    else:
+        def padding(_):
+            return (jnp.full((_CHUNK,), jnp.inf, jnp.float32), jnp.full((_CHUNK,), -1, jnp.int32),
+                    jnp.zeros((_CHUNK, 3), jnp.float32))
+
+        def g(args):
+            qb, start = args
+            return jax.lax.cond(start < count, lambda _: f(qb), padding, None)
+
+        starts = jnp.arange(n // _CHUNK, dtype=jnp.int32) * _CHUNK
+        d2, idx, match = jax.lax.map(g, (blocks, starts))
     return d2.reshape(n), idx.reshape(n), match.reshape(n, 3)
 
 
