@@ -53,6 +53,7 @@ from .pipeline import (
     check_resolutions,
     merge,
     overlap_margin,
+    rank_by_map_agreement,
     transform_from_xyz_rpy,
 )
 
@@ -197,6 +198,7 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
                               roll_pitch_offset_rad=rc.roll_pitch_offset_rad,
                               **_icp_kwargs(cfg, s["m1"].resolution))
             jax.block_until_ready(r)
+            r, _ = rank_by_map_agreement(s["m1"], s["m2"], r)  # as merge does
             s["timings"]["icp"] = time.perf_counter() - t0
             _finish_icp(i, state, results, r, cfg)
 

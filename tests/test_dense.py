@@ -259,3 +259,52 @@ def test_fused_log_odds_gradient_tunes_pose(pair):
 
     g = float(jax.grad(loss)(jnp.float32(0.0)))
     assert np.isfinite(g) and g > 0  # x is 0.08 m too large: decreasing it lowers the loss
+
+
+def _multi_result(Ts, status):
+    """An ``icp_multi``-shaped result with candidate transforms ``Ts (k, 4, 4)``."""
+    from octomerge_jax.registration import IcpMultiResult, IcpResult
+
+    k = len(Ts)
+    z = np.zeros(k, np.int32)
+    c = IcpResult(T_target_source=np.asarray(Ts, np.float32), converged=np.asarray(status) == 0,
+                  num_iterations=z + 10, num_inliers=z + 100, rmse=np.full(k, 0.05, np.float32),
+                  fitness=np.ones(k, np.float32), num_close=z + 50,
+                  correspondence_distance=np.full(k, 0.4, np.float32),
+                  status=np.asarray(status, np.int32), grid_overflow=z, swapped=np.bool_(False))
+    best = jax.tree_util.tree_map(lambda a: a[0] if np.ndim(a) else a, c)
+    return IcpMultiResult(best, c, np.int32(0), np.zeros(k, np.float32), np.asarray(Ts, np.float32))
+
+
+def test_map_agreement_ranks_the_turned_room_below_the_truth(pair, problem):
+    """``score_alignment`` sees free space: the room turned by pi about its centre (walls on
+    walls, the usual winner of point inlier counts) scores worse than the truth, and
+    ``rank_by_map_agreement`` (``merge(refine="multi")``) picks the truth among ICP candidates
+    whose status is usable (a failed candidate never wins, however it scores)."""
+    from octomerge_jax.pipeline import rank_by_map_agreement
+
+    m1, m2, _ = pair
+    C = np.eye(4)
+    C[:3, 3] = (6.0, 4.5, 0.0)  # the room's centre (frame 1 = world)
+    T_turned = C @ xyz_rpy64(0, 0, 0, 0, 0, np.pi) @ np.linalg.inv(C) @ T_TRUE
+    loss, overlap, agree = dense.score_alignment(problem, np.stack([T_turned, T_TRUE, np.full((4, 4), np.nan)]))
+    assert float(loss[1]) < float(loss[0]) - 0.02, loss
+    assert float(agree[1]) > 0.9 and float(overlap[1]) > 0.3
+    assert np.isposinf(float(loss[2]))
+    res, map_loss = rank_by_map_agreement(m1, m2, _multi_result([T_turned, T_TRUE, T_TRUE], [0, 1, 2]))
+    assert int(res.best_index) == 1 and map_loss.shape == (3,)
+    np.testing.assert_allclose(np.asarray(res.best.T_target_source), T_TRUE, atol=1e-6)
+    with pytest.raises(ValueError, match="T_1_2s"):
+        dense.score_alignment(problem, np.eye(4))
+
+
+@pytest.mark.slow
+def test_merge_multi_recovers_a_1_7_rad_yaw_error():
+    """Table 7.2 row 7 (1.7 rad), failed by the thesis: ``icp_multi`` alone picks the room turned
+    by pi (``test_registration_icp``), re-ranking its candidates by map agreement does not."""
+    from octomerge_jax.pipeline import merge
+
+    m1, m2, T = room_maps(crop_1=(-1.0, 11.5), crop_2=(0.5, 13.0))
+    _, rep = merge(m1, m2, xyz_rpy64(0, 0, 0, 0, 0, 1.7) @ T, refine="multi", T_1_2_true=T)
+    assert rep.epsilon_r < 0.25 and rep.epsilon_t < 0.9, (rep.epsilon_r, rep.epsilon_t)  # coherent
+    assert float(metrics.rotation_angle_error(rep.T_1_2, T)) < 0.05

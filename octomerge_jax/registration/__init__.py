@@ -6,7 +6,7 @@ error metrics and rigid-transform helpers."""
 # through ``importlib.import_module`` (the function shadows the module attribute).
 from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result,
                     default_levels, fused_log_odds, pose_from_increment, prepare_alignment,
-                    problem_loss, solve_alignment, solve_alignment_batch, stack_problems,
+                    problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
                     transformed_occupancy)
 from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
                   pad_points, stage_distances)
@@ -21,7 +21,7 @@ from .rigid import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quate
 __all__ = [
     "AlignProblem", "AlignResult", "align_dense", "alignment_loss", "best_result", "default_levels",
     "fused_log_odds", "pose_from_increment", "prepare_alignment", "problem_loss",
-    "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
+    "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
     "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded",
     "pad_points", "stage_distances", "rotation_angle_error", "rotation_error",
     "translation_distance", "translation_error", "HashGrid", "any_within", "build_grid",

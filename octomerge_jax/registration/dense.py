@@ -511,6 +511,38 @@ def _objective(z, lv, T_start, center, radius):
     return _level_terms(lv, pose_from_increment(T_start, z, center, radius))[0]
 
 
+def _fine_scores(problem: AlignProblem, T_1_2):
+    """``(loss, overlap, agreement)`` at the finest level under ``T_1_2 (4, 4)`` (``AlignResult``
+    fields of the same names)."""
+    fine = _at(problem, problem.num_levels - 1)
+    loss, s1, cov = _level_terms(fine, T_1_2)
+    w_occ = jnp.where(fine[5], fine[4], 0.0)
+    overlap = jnp.sum(w_occ * cov) / jnp.maximum(jnp.sum(w_occ), 1e-30)
+    # occupied in map 1 at the point: interpolated probability above 1/2 <=> s1 > 0
+    agree = jnp.sum(w_occ * cov * (s1 > 0).astype(jnp.float32)) / jnp.maximum(jnp.sum(w_occ * cov), 1e-30)
+    return loss, overlap, agree
+
+
+@jax.jit
+def _scores_jit(problem, T_1_2s):
+    return jax.vmap(lambda T: _fine_scores(problem, T))(T_1_2s)
+
+
+def score_alignment(problem: AlignProblem, T_1_2s):
+    """Score candidate transforms ``T_1_2s (k, 4, 4)`` (e.g. ``icp_multi``'s candidates) by the
+    finest-level alignment loss, without solving: ``(loss, overlap, agreement)``, each ``(k,)``
+    float32 (``AlignResult`` fields of the same names; lower loss is better, non-finite
+    transforms score ``+inf``). Unlike point inlier counts, the loss sees free space: a
+    candidate that puts map 2's surfaces into map 1's free space (e.g. a room turned by 180
+    degrees, whose walls still match) scores worse than the truth."""
+    T = jnp.asarray(T_1_2s, jnp.float32)
+    if T.ndim != 3 or T.shape[-2:] != (4, 4):
+        raise ValueError(f"T_1_2s: expected shape (k, 4, 4), got {T.shape}")
+    finite = jnp.all(jnp.isfinite(T), axis=(1, 2))
+    loss, overlap, agree = _scores_jit(problem, jnp.where(finite[:, None, None], T, jnp.eye(4)))
+    return jnp.where(finite, loss, jnp.inf), overlap, agree
+
+
 def _solve(problem: AlignProblem, T_init, tol, xtol, max_step, min_overlap, min_agreement,
            maxiter: int):
     """Coarse-to-fine L-BFGS (one compiled level step, scanned over the levels)."""
@@ -529,12 +561,7 @@ def _solve(problem: AlignProblem, T_init, tol, xtol, max_step, min_overlap, min_
 
     T0 = jnp.asarray(T_init, jnp.float32)
     T, (hist, iters, conv, gnorm) = jax.lax.scan(level_step, T0, jnp.arange(problem.num_levels))
-    fine = _at(problem, problem.num_levels - 1)
-    loss, s1, cov = _level_terms(fine, T)
-    w_occ = jnp.where(fine[5], fine[4], 0.0)
-    overlap = jnp.sum(w_occ * cov) / jnp.maximum(jnp.sum(w_occ), 1e-30)
-    # occupied in map 1 at the point: interpolated probability above 1/2 <=> s1 > 0
-    agree = jnp.sum(w_occ * cov * (s1 > 0).astype(jnp.float32)) / jnp.maximum(jnp.sum(w_occ * cov), 1e-30)
+    loss, overlap, agree = _fine_scores(problem, T)
     finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(T))
     status = jnp.where(~finite, STATUS_NOT_FINITE,
              jnp.where(overlap < min_overlap, STATUS_LOW_OVERLAP,
