@@ -333,6 +333,25 @@ def _merge_sorted(a_codes, a_vals, b_codes, b_vals):
     return codes[order], np.concatenate([a_vals, b_vals])[order]
 
 
+def run_starts(keys: np.ndarray):
+    """Runs of equal values in sorted ``keys (n,)``, ``n >= 1``: ``(starts, lengths)``."""
+    new_run = np.empty(keys.size, bool)
+    new_run[0] = True
+    np.not_equal(keys[1:], keys[:-1], out=new_run[1:])
+    starts = np.flatnonzero(new_run)
+    return starts, np.diff(np.append(starts, keys.size))
+
+
+def equal_sibling_blocks(parent: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Indices ``(k, 8)`` of the complete sibling groups whose values are all equal (exact
+    float ``==``, like ``OcTreeNode::operator==``): runs of exactly 8 equal entries of sorted
+    ``parent (n,)`` (the parents' codes of sorted leaves of one depth), ``values (n,)``."""
+    starts, lengths = run_starts(parent)
+    block = starts[lengths == 8][:, None] + np.arange(8)
+    vals = values[block]
+    return block[np.all(vals == vals[:, :1], axis=1)]
+
+
 def encode_bt_pruned(codes, depths, log_odds, threshold, clamp_min, clamp_max):
     """``.bt`` body of OctoMap's ``toMaxLikelihood(); prune(); writeBinaryConst()`` for the
     tree over the given leaves (sorted codes, depth >= 1), in one bottom-up pass.
@@ -367,23 +386,14 @@ def encode_bt_pruned(codes, depths, log_odds, threshold, clamp_min, clamp_max):
             collapsed = False
             if leaf_codes.size >= 8:
                 parent = leaf_codes & mask
-                new_run = np.empty(parent.size, bool)
-                new_run[0] = True
-                np.not_equal(parent[1:], parent[:-1], out=new_run[1:])
-                starts = np.flatnonzero(new_run)
-                run_len = np.diff(np.append(starts, parent.size))
-                cand = starts[run_len == 8]
-                if cand.size:
-                    block = cand[:, None] + np.arange(8)
-                    vals = leaf_vals[block]
-                    full = np.all(vals == vals[:, :1], axis=1)  # OcTreeNode::operator==
-                    if full.any():
-                        collapsed = True
-                        first = cand[full]
-                        carry_codes, carry_vals = parent[first], leaf_vals[first]
-                        keep = np.ones(parent.size, bool)
-                        keep[block[full]] = False
-                        leaf_codes, leaf_vals = leaf_codes[keep], leaf_vals[keep]
+                block = equal_sibling_blocks(parent, leaf_vals)
+                if block.size:
+                    collapsed = True
+                    first = block[:, 0]
+                    carry_codes, carry_vals = parent[first], leaf_vals[first]
+                    keep = np.ones(parent.size, bool)
+                    keep[block] = False
+                    leaf_codes, leaf_vals = leaf_codes[keep], leaf_vals[keep]
             pruning = collapsed
         n_leaves += leaf_codes.size
         leaf_state = np.where(leaf_vals >= threshold, 2, 1).astype(np.uint16)
@@ -393,10 +403,7 @@ def encode_bt_pruned(codes, depths, log_odds, threshold, clamp_min, clamp_max):
             inner_codes, inner_words = np.zeros(0, np.uint64), np.zeros(0, np.uint16)
             continue
         parent = kid_codes & mask
-        new_run = np.empty(parent.size, bool)
-        new_run[0] = True
-        np.not_equal(parent[1:], parent[:-1], out=new_run[1:])
-        starts = np.flatnonzero(new_run)
+        starts, _ = run_starts(parent)
         child = ((kid_codes >> _U64(3 * (TREE_DEPTH - e))) & _U64(7)).astype(np.uint16)
         inner_words = np.bitwise_or.reduceat(kid_state << (2 * child), starts)
         inner_codes = parent[starts]

@@ -416,21 +416,10 @@ def max_likelihood_prune(codes, depths, log_odds, params=None):
         idx = np.flatnonzero(depths == d + 1)
         if idx.size < 8:
             break
-        parent = codes[idx] & _preorder.MASKS[d]
-        new_run = np.empty(idx.size, bool)
-        new_run[0] = True
-        np.not_equal(parent[1:], parent[:-1], out=new_run[1:])
-        starts = np.flatnonzero(new_run)
-        run_len = np.diff(np.append(starts, idx.size))
-        cand = starts[run_len == 8]
-        if cand.size == 0:
+        block = _preorder.equal_sibling_blocks(codes[idx] & _preorder.MASKS[d], values[idx])
+        if not block.size:
             break
-        block = idx[cand[:, None] + np.arange(8)]
-        vals = values[block]
-        full = np.all(vals == vals[:, :1], axis=1)  # exact float ==, like OcTreeNode::==
-        if not full.any():
-            break
-        block = block[full]
+        block = idx[block]
         depths[block[:, 0]] = d
         depths[block[:, 1:]] = removed
     keep = depths != removed
