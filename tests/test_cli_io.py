@@ -95,3 +95,24 @@ def test_cli_errors(octomap_files, tmp_path, capsys):
     assert str(broken) in err and "byte" in err and "truncated" in err
     assert main(["convert", str(broken), str(tmp_path / "out.bt")]) == 1
     assert not (tmp_path / "out.bt").exists()
+
+
+def test_cli_keeps_compiled_kernels_in_a_persistent_cache(tmp_path):
+    """The console script (not the library import) turns on JAX's persistent compilation cache
+    in ``$OCTOMERGE_CACHE_DIR``; ``off`` disables it."""
+    import os
+    import subprocess
+    import sys
+
+    from octomerge_jax.examples import example_map_path
+
+    cache = tmp_path / "xla"
+    code = "import sys; from octomerge_jax.cli import main; sys.exit(main(sys.argv[1:]))"
+    env = {**os.environ, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0", "JAX_PLATFORMS": "cpu"}
+    for setting, expect in ((str(tmp_path / "none"), None), (str(cache), True)):
+        env["OCTOMERGE_CACHE_DIR"] = "off" if expect is None else setting
+        out = subprocess.run([sys.executable, "-c", code, "info", str(example_map_path())], env=env,
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr
+    assert not (tmp_path / "none").exists()
+    assert len(list(cache.iterdir())) > 0
