@@ -338,7 +338,7 @@ def _bsearch(lo, hi, pred, steps: int):
     return jax.lax.fori_loop(0, steps, body, (lo, hi))[0]
 
 
-_CHUNK = 64  # merge-path chunk: each rank is a search over at most this many entries
+_CHUNK = 32  # merge-path chunk: each chunk is merged sequentially, all chunks at once
 
 
 def _merge_ranks(ah, al, bh, bl):
@@ -346,9 +346,10 @@ def _merge_ranks(ah, al, bh, bl):
     returns ``(#b < a_i, #a <= b_j)``, each element's rank in the other list.
 
     Merge path, no sort: the merged sequence is cut into chunks of ``_CHUNK``; where each cut
-    falls in ``a`` and ``b`` is one binary search per cut (few), and then every element's
-    rank is a binary search inside its chunk's window (``log2(_CHUNK)`` cache-local steps)
-    instead of over the whole other list.
+    falls in ``a`` and ``b`` is one binary search per cut (few). Then all chunks are merged
+    at once, one element per chunk and step (``_CHUNK`` steps of ``(Ca + Cb) / _CHUNK``
+    lanes): the element taken records its rank in the other list, and one scatter per list
+    puts the ranks in place. ``O(Ca + Cb)`` work, no binary search per element.
     """
     ca, cb = ah.shape[0], bh.shape[0]
     n = ca + cb
@@ -361,16 +362,21 @@ def _merge_ranks(ah, al, bh, bl):
 
     x = _bsearch(jnp.maximum(d - cb, 0), jnp.minimum(d, ca), a_before_cut, int(ca).bit_length())
     y = d - x  # cut k: x[k] a's and y[k] b's precede it
+    a, b = jnp.stack([ah, al], -1), jnp.stack([bh, bl], -1)
 
-    def chunk_of(cuts, size):  # chunk k of element i: cuts[k] <= i < cuts[k + 1]
-        hits = jnp.zeros((size,), jnp.int32).at[cuts[1:-1]].add(1, mode="drop")
-        return _cumsum(hits)
+    def step(state, _):
+        i, j = state  # next a and b of each chunk
+        ai, bj = a[jnp.minimum(i, ca - 1)], b[jnp.minimum(j, cb - 1)]
+        take_a = (i < x[1:]) & ((j >= y[1:]) | ~_less(bj[:, 0], bj[:, 1], ai[:, 0], ai[:, 1]))
+        take_b = ~take_a & (j < y[1:])
+        # a taken: rank[a_i] = j (as ~~i); b taken: rank[b_j] = i (as ~j); none: dropped (~cb)
+        key = jnp.where(take_a, i, ~jnp.where(take_b, j, cb))
+        return (i + take_a.astype(jnp.int32), j + take_b.astype(jnp.int32)), (key, jnp.where(take_a, j, i))
 
-    steps = int(_CHUNK).bit_length()
-    ka = chunk_of(x, ca)
-    lt_a = _bsearch(y[ka], y[ka + 1], lambda j: _less(bh[j], bl[j], ah, al), steps)
-    kb = chunk_of(y, cb)
-    le_b = _bsearch(x[kb], x[kb + 1], lambda i: ~_less(bh, bl, ah[i], al[i]), steps)
+    _, (key, rank) = jax.lax.scan(step, (x[:-1], y[:-1]), None, length=_CHUNK)
+    key, rank = key.reshape(-1), rank.reshape(-1)
+    lt_a = jnp.zeros((ca,), jnp.int32).at[jnp.where(key >= 0, key, ca)].set(rank, mode="drop")
+    le_b = jnp.zeros((cb,), jnp.int32).at[jnp.where(key < 0, ~key, cb)].set(rank, mode="drop")
     return lt_a, le_b
 
 
@@ -429,7 +435,7 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     count = n_before + self_emit.astype(jnp.int32) + n_after
     return dict(
         count=count, n_before=n_before, n_after=n_after, self_emit=self_emit,
-        self_row=(ah, al, A.depth, self_val),
+        self_row=(A.code, A.depth, self_val),
         gap_before=(gbh, gbl, ah, al, gap_val), gap_after=(aeh, ael, gah, gal, gap_val),
         stats=dict(equal=jnp.sum(equal & first), split=jnp.sum(split),
                    both=jnp.sum(self_emit & cov), new_self=jnp.sum(self_emit & ~cov),
@@ -440,17 +446,13 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
 def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth):
     """Lay out the common refinement (``capacity`` rows, Morton order) as an unpruned map.
 
-    ``selfs``: ``(slot, hi, lo, depth, value)`` cells written as they are; ``gaps``: ``(slot,
+    ``selfs``: ``(slot, code (n, 2), depth, value)`` cells written as they are; ``gaps``: ``(slot,
     count, s_hi, s_lo, e_hi, e_lo, value)``: the ``count`` cells of ``[s, e)`` from ``slot``
     on. Slots past ``capacity`` are dropped (``total > capacity`` is the overflow). Cells are
     scattered; every slot of a gap finds its gap by a cumulative max over gap start slots and
     computes its cell in closed form (``_gap_cell``).
     """
     cap = capacity
-    self_rows = jnp.zeros((cap, 3), jnp.int32)  # hi | (depth + 1) << 25 (0: no self cell), lo, value
-    for slot, h, l, d, v in selfs:
-        rows = jnp.stack([h | jnp.left_shift(d + 1, 25), l, _bits(v)], -1)
-        self_rows = self_rows.at[slot].set(rows, mode="drop")
     gap_rows = jnp.zeros((cap, 6), jnp.int32)  # s_hi, s_lo, e_hi, e_lo, value, start slot + 1
     for slot, n, sh, sl, eh, el, v in gaps:
         slot = jnp.where(n > 0, slot, cap)
@@ -462,15 +464,17 @@ def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth):
     g0, g1, g2, g3 = g[:, 0], g[:, 1], g[:, 2], g[:, 3]
     info = _materialize(total >= 0, _gap_cell_info(g0, g1, g2, g3, q - start))
     ch, cl, cd = _cell_code(g0, g1, g2, g3, info)
-    self_depth = jnp.right_shift(self_rows[:, 0], 25) - 1
-    is_self = self_depth >= 0
     ok = q < total
-    hi = jnp.where(ok, jnp.where(is_self, self_rows[:, 0] & ((1 << 25) - 1), ch), _SENT)
-    lo = jnp.where(ok, jnp.where(is_self, self_rows[:, 1], cl), 0)
-    depth = jnp.where(ok, jnp.where(is_self, self_depth, cd), _D)
-    val = jax.lax.bitcast_convert_type(jnp.where(is_self, self_rows[:, 2], g[:, 4]), jnp.float32)
-    val = jnp.where(ok, val, 0.0)
-    return OccupancyMap(jnp.stack([hi, lo], -1), depth, val, jnp.minimum(total, cap).astype(jnp.int32),
+    code = jnp.stack([jnp.where(ok, ch, _SENT), jnp.where(ok, cl, 0)], -1)
+    depth = jnp.where(ok, cd, _D)
+    val = jnp.where(ok, jax.lax.bitcast_convert_type(g[:, 4], jnp.float32), 0.0)
+    # the leaves' own cells are written over the slots they own (whatever the gap fill put
+    # there): their code and depth are the input arrays, no stacked copy
+    for slot, c, d, v in selfs:
+        code = code.at[slot].set(c, mode="drop")
+        depth = depth.at[slot].set(d, mode="drop")
+        val = val.at[slot].set(v, mode="drop")
+    return OccupancyMap(code, depth, val, jnp.minimum(total, cap).astype(jnp.int32),
                         params, resolution, tree_depth)
 
 
@@ -634,10 +638,11 @@ def _merge_lists(a, b):
     (``_merge_ranks``): no sort."""
     ca, cb = a[0].shape[0], b[0].shape[0]
     lt, le = _merge_ranks(a[0], a[1], b[0], b[1])
-    out = jnp.zeros((ca + cb, len(a)), jnp.int32)
-    out = out.at[jnp.arange(ca, dtype=jnp.int32) + lt].set(jnp.stack(a, -1))
-    out = out.at[jnp.arange(cb, dtype=jnp.int32) + le].set(jnp.stack(b, -1))
-    return tuple(out[:, i] for i in range(len(a)))
+    pa = jnp.arange(ca, dtype=jnp.int32) + lt
+    pb = jnp.arange(cb, dtype=jnp.int32) + le
+    # column by column (1-D scatters; a stacked row table is a slow concatenate on the CPU)
+    return tuple(jnp.zeros((ca + cb,), jnp.int32).at[pa].set(x, unique_indices=True)
+                 .at[pb].set(y, unique_indices=True) for x, y in zip(a, b))
 
 
 @functools.partial(jax.jit, static_argnames=("capacity", "do_prune"))
@@ -664,30 +669,36 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
     nh, nl = _shift_up(bh, _SENT + 1), _shift_up(bl, 0)
     nonempty = _less(bh, bl, nh, nl) & (bh < _SENT)
     # 2. per map, the leaf covering each elementary interval [b_q, b_{q+1}): the last start
-    #    of that map at or before q, if its end lies past b_q.
-    cov, vals, exact = [], [], []
+    #    of that map at or before q, if its end lies past b_q; 3. one value per interval
+    #    (sum: map order, clamped after each map, as the fold of fuse). One map at a time, so
+    #    only the running value stays in memory.
+    p = m0.params
+    lo_c, hi_c = p.clamp_min_log_odds, p.clamp_max_log_odds
+    known = jnp.zeros((n_b,), bool)
+    acc = jnp.zeros((n_b,), jnp.float32)
+    n_known = jnp.zeros((n_b,), jnp.int32)
+    n_exact = jnp.zeros((n_b,), jnp.int32)
+    cov0, split = None, []
     for k, m in enumerate(maps):
         last = _cummax(jnp.where((bmap == k) & (bidx >= 0), q, -1))
         leaf = jnp.clip(bidx[jnp.maximum(last, 0)], 0, m.capacity - 1)
         lh, ll, ld = m.code[leaf, 0], m.code[leaf, 1], m.depth[leaf]
         eh, el = _end(lh, ll, ld)
         c = nonempty & (last >= 0) & _less(bh, bl, eh, el)
-        cov.append(c)
-        vals.append(m.log_odds[leaf])
-        exact.append(c & (lh == bh) & (ll == bl) & (eh == nh) & (el == nl))
-    # 3. one value per interval (sum: map order, clamped after each map, as the fold of fuse)
-    p = m0.params
-    lo_c, hi_c = p.clamp_min_log_odds, p.clamp_max_log_odds
-    known = cov[0]
-    acc = jnp.where(known, _single(mode, vals[0], w[0]), 0.0)
-    for k in range(1, len(maps)):
-        v = vals[k]
-        summed = jnp.clip(jnp.where(known, acc + v, v), lo_c, hi_c)  # fold of fuse: clamp per map
-        other = jnp.where(known, _combine(mode, acc, v, 1.0, w[k]), _single(mode, v, w[k]))
-        new = jnp.where(mode == 0, summed, other)
-        acc = jnp.where(cov[k], new, jnp.where(mode == 0, jnp.clip(acc, lo_c, hi_c), acc))
-        known = known | cov[k]
-    n_known = sum(c.astype(jnp.int32) for c in cov)
+        exact = c & (lh == bh) & (ll == bl) & (eh == nh) & (el == nl)
+        v = m.log_odds[leaf]
+        if k == 0:
+            cov0 = c
+            acc = jnp.where(c, _single(mode, v, w[0]), 0.0)
+        else:
+            summed = jnp.clip(jnp.where(known, acc + v, v), lo_c, hi_c)  # fold: clamp per map
+            other = jnp.where(known, _combine(mode, acc, v, 1.0, w[k]), _single(mode, v, w[k]))
+            new = jnp.where(mode == 0, summed, other)
+            acc = jnp.where(c, new, jnp.where(mode == 0, jnp.clip(acc, lo_c, hi_c), acc))
+        known = known | c
+        n_known = n_known + c.astype(jnp.int32)
+        n_exact = n_exact + exact.astype(jnp.int32)
+        split.append(m.count - jnp.sum(exact))
     # 4. decompose the known intervals into aligned cells, laid out in order
     n_cells = _materialize(m0.count >= 0, jnp.where(known, _gap_plan(bh, bl, nh, nl), 0))
     ends = _cumsum(n_cells)
@@ -696,15 +707,14 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
                 p, m0.resolution, m0.tree_depth)
     if do_prune:
         out = tree._prune_runs(out)
-    n_exact = sum(e.astype(jnp.int32) for e in exact)
     report = FuseReport(
         leaves_in=jnp.stack([m.count for m in maps]).astype(jnp.int32),
         refined_cells=total,
         leaves_out=out.count,
         same_depth=jnp.sum(n_exact >= 2).astype(jnp.int32),
-        split=jnp.stack([m.count - jnp.sum(e) for m, e in zip(maps, exact)]).astype(jnp.int32),
+        split=jnp.stack(split).astype(jnp.int32),
         cells_both=jnp.sum(jnp.where(n_known >= 2, n_cells, 0)).astype(jnp.int32),
-        cells_new=jnp.sum(jnp.where(~cov[0], n_cells, 0)).astype(jnp.int32),
+        cells_new=jnp.sum(jnp.where(~cov0, n_cells, 0)).astype(jnp.int32),
         overflow=total > capacity,
         capacity=capacity,
     )

@@ -148,11 +148,16 @@ def _compact(m: OccupancyMap, keep, depth=None, log_odds=None) -> OccupancyMap:
     """Keep the rows where ``keep`` (order preserved), padding the rest."""
     depth = m.depth if depth is None else depth
     log_odds = m.log_odds if log_odds is None else log_odds
-    rows = jnp.stack([m.code[:, 0], m.code[:, 1], depth,
-                      jax.lax.bitcast_convert_type(log_odds.astype(jnp.float32), jnp.int32)], -1)
-    out, count = _compact_rows(rows, keep, jnp.array([morton.SENTINEL_HI, 0, _D, 0], jnp.int32))
-    return OccupancyMap(out[:, :2], out[:, 2], jax.lax.bitcast_convert_type(out[:, 3], jnp.float32),
-                        count, m.params, m.resolution, m.tree_depth)
+    cap = m.capacity
+    rank = _cumsum(keep.astype(jnp.int32))
+    pos = jnp.where(keep, rank - 1, cap)
+    # each array scattered into a buffer pre-filled with its padding value: no stacked
+    # copy, no second pass to pad (less memory written)
+    code = jnp.broadcast_to(jnp.array([morton.SENTINEL_HI, 0], jnp.int32), (cap, 2)).at[pos].set(
+        m.code, mode="drop")
+    depth = jnp.full((cap,), _D, jnp.int32).at[pos].set(depth.astype(jnp.int32), mode="drop")
+    log_odds = jnp.zeros((cap,), jnp.float32).at[pos].set(log_odds.astype(jnp.float32), mode="drop")
+    return OccupancyMap(code, depth, log_odds, rank[-1], m.params, m.resolution, m.tree_depth)
 
 
 def _prune_runs(m: OccupancyMap) -> OccupancyMap:
