@@ -185,7 +185,7 @@ def _prune_runs(m: OccupancyMap) -> OccupancyMap:
     joins_next = _shift_up(joins_prev, 1, False)
     tail = _cummin(jnp.where(joins_next, cap, i), reverse=True)
     gate = m.count >= 0
-    rsh, rsl, reh, rel = _materialize(gate, ch[head], cl[head], eh[tail], el[tail])
+    rsh, rsl, reh, rel = ch[head], cl[head], eh[tail], el[tail]  # gathered inside the depth pass
     # trailing zero bits of rs (48 for rs = 0), then whole octal digits
     ctz = lambda w: jax.lax.population_count(~w & (w - 1))  # noqa: E731 (32 for w = 0)
     tz = jnp.where(rsl != 0, ctz(rsl), 24 + jnp.minimum(ctz(rsh), 24))
