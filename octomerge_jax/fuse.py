@@ -325,61 +325,6 @@ def _shift_up(x, fill):
     return jnp.concatenate([x[1:], jnp.full((1,), fill, x.dtype)])
 
 
-def _bsearch(lo, hi, pred, steps: int):
-    """``lo + #{i in [lo, hi): pred(i)}`` for a predicate true then false on ``[lo, hi)``:
-    ``steps`` (static, ``>= log2(max width + 1)``) halvings, vectorised."""
-
-    def body(_, state):
-        lo, hi = state
-        mid = jnp.right_shift(lo + hi, 1)
-        go = (mid < hi) & pred(mid)
-        return jnp.where(go, mid + 1, lo), jnp.where(go, hi, mid)
-
-    return jax.lax.fori_loop(0, steps, body, (lo, hi))[0]
-
-
-_CHUNK = 32  # merge-path chunk: each chunk is merged sequentially, all chunks at once
-
-
-def _merge_ranks(ah, al, bh, bl):
-    """Merge two sorted code lists ``a (Ca,)``, ``b (Cb,)`` (word columns; ties: ``a`` first):
-    returns ``(#b < a_i, #a <= b_j)``, each element's rank in the other list.
-
-    Merge path, no sort: the merged sequence is cut into chunks of ``_CHUNK``; where each cut
-    falls in ``a`` and ``b`` is one binary search per cut (few). Then all chunks are merged
-    at once, one element per chunk and step (``_CHUNK`` steps of ``(Ca + Cb) / _CHUNK``
-    lanes): the element taken records its rank in the other list, and one scatter per list
-    puts the ranks in place. ``O(Ca + Cb)`` work, no binary search per element.
-    """
-    ca, cb = ah.shape[0], bh.shape[0]
-    n = ca + cb
-    d = jnp.minimum(jnp.arange(-(-n // _CHUNK) + 1, dtype=jnp.int32) * _CHUNK, n)
-
-    def a_before_cut(i):  # a_i is among the first d merged iff a_i <= b[d - i - 1]
-        jb = d - i - 1
-        jc, ic = jnp.clip(jb, 0, cb - 1), jnp.clip(i, 0, ca - 1)
-        return (jb >= cb) | ((jb >= 0) & ~_less(bh[jc], bl[jc], ah[ic], al[ic]))
-
-    x = _bsearch(jnp.maximum(d - cb, 0), jnp.minimum(d, ca), a_before_cut, int(ca).bit_length())
-    y = d - x  # cut k: x[k] a's and y[k] b's precede it
-    a, b = jnp.stack([ah, al], -1), jnp.stack([bh, bl], -1)
-
-    def step(state, _):
-        i, j = state  # next a and b of each chunk
-        ai, bj = a[jnp.minimum(i, ca - 1)], b[jnp.minimum(j, cb - 1)]
-        take_a = (i < x[1:]) & ((j >= y[1:]) | ~_less(bj[:, 0], bj[:, 1], ai[:, 0], ai[:, 1]))
-        take_b = ~take_a & (j < y[1:])
-        # a taken: rank[a_i] = j (as ~~i); b taken: rank[b_j] = i (as ~j); none: dropped (~cb)
-        key = jnp.where(take_a, i, ~jnp.where(take_b, j, cb))
-        return (i + take_a.astype(jnp.int32), j + take_b.astype(jnp.int32)), (key, jnp.where(take_a, j, i))
-
-    _, (key, rank) = jax.lax.scan(step, (x[:-1], y[:-1]), None, length=_CHUNK)
-    key, rank = key.reshape(-1), rank.reshape(-1)
-    lt_a = jnp.zeros((ca,), jnp.int32).at[jnp.where(key >= 0, key, ca)].set(rank, mode="drop")
-    le_b = jnp.zeros((cb,), jnp.int32).at[jnp.where(key < 0, ~key, cb)].set(rank, mode="drop")
-    return lt_a, le_b
-
-
 # ----------------------------------------------------------------------------- pair kernel
 
 
@@ -486,7 +431,7 @@ def _excl_at(incl, idx):
 @functools.partial(jax.jit, static_argnames=("capacity", "do_prune"))
 def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, do_prune: bool):
     h1, l1, h2, l2 = m1.code[:, 0], m1.code[:, 1], m2.code[:, 0], m2.code[:, 1]
-    lt2, le1 = _merge_ranks(h1, l1, h2, l2)  # #m2 < m1_i, #m1 <= m2_j
+    lt2, le1 = morton.merge_ranks(h1, l1, h2, l2)  # #m2 < m1_i, #m1 <= m2_j
     k = jnp.clip(lt2, 0, m2.capacity - 1)
     le2 = lt2 + ((lt2 < m2.count) & (h2[k] == h1) & (l2[k] == l1)).astype(jnp.int32)
     lo_c, hi_c = m1.params.clamp_min_log_odds, m1.params.clamp_max_log_odds
@@ -631,20 +576,6 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
 # ----------------------------------------------------------------------------- m maps
 
 
-def _merge_lists(a, b):
-    """Stable merge of two sorted record lists ``(hi, lo, *payload)`` (tuples of ``(n,)``
-    int32 arrays, duplicates allowed, padding sorted last); ties keep ``a`` first. Each
-    record's output position is its own index plus its rank in the other list
-    (``_merge_ranks``): no sort."""
-    ca, cb = a[0].shape[0], b[0].shape[0]
-    lt, le = _merge_ranks(a[0], a[1], b[0], b[1])
-    pa = jnp.arange(ca, dtype=jnp.int32) + lt
-    pb = jnp.arange(cb, dtype=jnp.int32) + le
-    # column by column (1-D scatters; a stacked row table is a slow concatenate on the CPU)
-    return tuple(jnp.zeros((ca + cb,), jnp.int32).at[pa].set(x, unique_indices=True)
-                 .at[pb].set(y, unique_indices=True) for x, y in zip(a, b))
-
-
 @functools.partial(jax.jit, static_argnames=("capacity", "do_prune"))
 def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
     m0 = maps[0]
@@ -659,7 +590,7 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
                  (jnp.full_like(idx, k), jnp.full_like(idx, k)), (idx, jnp.full_like(idx, -1))]
         lists.append(tuple(jnp.stack(p, -1).reshape(-1) for p in pairs))
     while len(lists) > 1:  # merge tree: log2(m) levels
-        nxt = [_merge_lists(lists[i], lists[i + 1]) for i in range(0, len(lists) - 1, 2)]
+        nxt = [morton.merge_sorted(lists[i], lists[i + 1]) for i in range(0, len(lists) - 1, 2)]
         if len(lists) % 2:
             nxt.append(lists[-1])
         lists = nxt

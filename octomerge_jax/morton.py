@@ -54,6 +54,8 @@ __all__ = [
     "words_less",
     "words_equal",
     "searchsorted_words",
+    "merge_ranks",
+    "merge_sorted",
     "points_to_keys",
 ]
 
@@ -304,3 +306,79 @@ def searchsorted_words(sorted_words, query_words, side: str = "right"):
 
     lo, hi = jax.lax.fori_loop(0, steps, body, (lo, hi))
     return lo
+
+
+# ----------------------------------------------------------------------------- merge path
+
+
+def _less(ah, al, bh, bl):
+    return (ah < bh) | ((ah == bh) & (al < bl))
+
+
+def _bsearch(lo, hi, pred, steps: int):
+    """``lo + #{i in [lo, hi): pred(i)}`` for a predicate true then false on ``[lo, hi)``:
+    ``steps`` (static, ``>= log2(max width + 1)``) halvings, vectorised."""
+
+    def body(_, state):
+        lo, hi = state
+        mid = jnp.right_shift(lo + hi, 1)
+        go = (mid < hi) & pred(mid)
+        return jnp.where(go, mid + 1, lo), jnp.where(go, hi, mid)
+
+    return jax.lax.fori_loop(0, steps, body, (lo, hi))[0]
+
+
+_CHUNK = 32  # merge-path chunk: each chunk is merged sequentially, all chunks at once
+
+
+def merge_ranks(ah, al, bh, bl):
+    """Merge two sorted code lists ``a (Ca,)``, ``b (Cb,)`` (word columns; ties: ``a`` first):
+    returns ``(#b < a_i, #a <= b_j)``, each element's rank in the other list.
+
+    Merge path, no sort: the merged sequence is cut into chunks of ``_CHUNK``; where each cut
+    falls in ``a`` and ``b`` is one binary search per cut (few). Then all chunks are merged
+    at once, one element per chunk and step (``_CHUNK`` steps of ``(Ca + Cb) / _CHUNK``
+    lanes): the element taken records its rank in the other list, and one scatter per list
+    puts the ranks in place. ``O(Ca + Cb)`` work, no binary search per element.
+    """
+    ca, cb = ah.shape[0], bh.shape[0]
+    n = ca + cb
+    d = jnp.minimum(jnp.arange(-(-n // _CHUNK) + 1, dtype=jnp.int32) * _CHUNK, n)
+
+    def a_before_cut(i):  # a_i is among the first d merged iff a_i <= b[d - i - 1]
+        jb = d - i - 1
+        jc, ic = jnp.clip(jb, 0, cb - 1), jnp.clip(i, 0, ca - 1)
+        return (jb >= cb) | ((jb >= 0) & ~_less(bh[jc], bl[jc], ah[ic], al[ic]))
+
+    x = _bsearch(jnp.maximum(d - cb, 0), jnp.minimum(d, ca), a_before_cut, int(ca).bit_length())
+    y = d - x  # cut k: x[k] a's and y[k] b's precede it
+    a, b = jnp.stack([ah, al], -1), jnp.stack([bh, bl], -1)
+
+    def step(state, _):
+        i, j = state  # next a and b of each chunk
+        ai, bj = a[jnp.minimum(i, ca - 1)], b[jnp.minimum(j, cb - 1)]
+        take_a = (i < x[1:]) & ((j >= y[1:]) | ~_less(bj[:, 0], bj[:, 1], ai[:, 0], ai[:, 1]))
+        take_b = ~take_a & (j < y[1:])
+        # a taken: rank[a_i] = j (as ~~i); b taken: rank[b_j] = i (as ~j); none: dropped (~cb)
+        key = jnp.where(take_a, i, ~jnp.where(take_b, j, cb))
+        return (i + take_a.astype(jnp.int32), j + take_b.astype(jnp.int32)), (key, jnp.where(take_a, j, i))
+
+    _, (key, rank) = jax.lax.scan(step, (x[:-1], y[:-1]), None, length=_CHUNK)
+    key, rank = key.reshape(-1), rank.reshape(-1)
+    lt_a = jnp.zeros((ca,), jnp.int32).at[jnp.where(key >= 0, key, ca)].set(rank, mode="drop")
+    le_b = jnp.zeros((cb,), jnp.int32).at[jnp.where(key < 0, ~key, cb)].set(rank, mode="drop")
+    return lt_a, le_b
+
+
+def merge_sorted(a, b):
+    """Stable merge of two sorted record lists ``(hi, lo, *payload)`` (tuples of ``(n,)``
+    int32 arrays, duplicates allowed, padding sorted last); ties keep ``a`` first. Each
+    record's output position is its own index plus its rank in the other list
+    (``merge_ranks``): no sort. Returns a tuple of ``(Ca + Cb,)`` arrays."""
+    ca, cb = a[0].shape[0], b[0].shape[0]
+    lt, le = merge_ranks(a[0], a[1], b[0], b[1])
+    pa = jnp.arange(ca, dtype=jnp.int32) + lt
+    pb = jnp.arange(cb, dtype=jnp.int32) + le
+    # column by column (1-D scatters; a stacked row table is a slow concatenate on the CPU)
+    return tuple(jnp.zeros((ca + cb,), jnp.int32).at[pa].set(x, unique_indices=True)
+                 .at[pb].set(y, unique_indices=True) for x, y in zip(a, b))

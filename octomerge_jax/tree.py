@@ -333,12 +333,15 @@ for _mask in range(256):
 
 
 def _plan_updates(m: OccupancyMap, words, valid):
-    """Sort/dedupe updated voxels and find the sibling 'filler' leaves that local expansion of
-    coarse leaves creates. Returns a dict of arrays used by ``_apply_updates``."""
+    """Sort (unless already sorted, as ``insert`` gives them) and look up the updated voxels.
+    Returns a dict of arrays used by ``_plan_splits`` and ``_apply_updates``."""
     n = words.shape[0]
     code = jnp.where(valid[:, None], words, jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
     order = jnp.arange(n, dtype=jnp.int32)
-    hi, lo, order = jax.lax.sort((code[:, 0], code[:, 1], order), num_keys=2, is_stable=True)
+    presorted = jnp.all(~morton.words_less(code[1:], code[:-1]))
+    hi, lo, order = jax.lax.cond(  # the identity is the stable sort of sorted rows
+        presorted, lambda: (code[:, 0], code[:, 1], order),
+        lambda: jax.lax.sort((code[:, 0], code[:, 1], order), num_keys=2, is_stable=True))
     code = jnp.stack([hi, lo], axis=-1)
     valid_sorted = hi < morton.SENTINEL_HI
     prev = _shift_down(code, 1, -1)
@@ -346,9 +349,34 @@ def _plan_updates(m: OccupancyMap, words, valid):
     row, known = lookup_words(m, code)
     known = known & valid_sorted
     leaf_depth = jnp.where(known, m.depth[row], _D)
-    # Path nodes: ancestors of unique voxels strictly below their coarse leaf. Entry (j, l)
-    # stands for the level-(l-1) ancestor of voxel j when j is the first voxel under it; its
-    # ``mask`` has a bit per child (level l) that holds an updated voxel.
+    split = known & (leaf_depth < _D)  # inside a coarse leaf: local expansion
+    unique = seg_start & valid_sorted
+    touched = jnp.zeros(m.capacity, jnp.int32).at[jnp.where(known & unique, row, m.capacity)].max(1, mode="drop")
+    return dict(code=code, order=order, seg_start=seg_start, valid=valid_sorted, row=row, known=known,
+                leaf_depth=leaf_depth, split=split, unique=unique, touched=touched.astype(bool),
+                num_split=jnp.sum(split), num_unique=jnp.sum(unique), num_touched=jnp.sum(touched))
+
+
+_plan_updates_jit = jax.jit(_plan_updates)
+
+
+@functools.partial(jax.jit, static_argnames=("split_capacity",))
+def _plan_splits(p, split_capacity: int):
+    """The sibling 'filler' leaves that local expansion of coarse leaves creates, planned on
+    the voxels inside coarse leaves only (compacted to ``split_capacity`` rows; every voxel
+    sharing a path node with one of them is one of them, so runs are unchanged).
+
+    Entry ``(j, l)`` stands for the level-``(l-1)`` ancestor of split voxel ``j`` when ``j``
+    is the first voxel under it, strictly below its coarse leaf; ``mask`` has a bit per child
+    (level ``l``) holding an updated voxel, and ``8 - popcount(mask)`` fillers are created.
+    """
+    n = split_capacity
+    split = p["split"]
+    pos = jnp.where(split, _cumsum(split.astype(jnp.int32)) - 1, n)
+    sidx = jnp.zeros((n,), jnp.int32).at[pos].set(jnp.arange(split.shape[0], dtype=jnp.int32), mode="drop")
+    ok = jnp.arange(n) < jnp.sum(split)
+    code = jnp.where(ok[:, None], p["code"][sidx], jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
+    leaf_depth = jnp.where(ok, p["leaf_depth"][sidx], _D)
     levels = jnp.arange(1, _D + 1, dtype=jnp.int32)  # child level l = 1..16
 
     def per_level(l):
@@ -362,21 +390,14 @@ def _plan_updates(m: OccupancyMap, words, valid):
 
     first_parent, masks = jax.vmap(per_level, out_axes=1)(levels)  # (n, 16) each
     masks = masks.astype(jnp.int32)
-    active = first_parent & known[:, None] & (levels[None, :] > leaf_depth[:, None]) & valid_sorted[:, None]
+    active = first_parent & ok[:, None] & (levels[None, :] > leaf_depth[:, None])
     popcount = jnp.sum((masks[..., None] >> jnp.arange(8)) & 1, axis=-1)
     n_fill = jnp.where(active, 8 - popcount, 0).reshape(-1)
-    unique = seg_start & valid_sorted
-    touched = jnp.zeros(m.capacity, jnp.int32).at[jnp.where(known & unique, row, m.capacity)].max(1, mode="drop")
-    return dict(code=code, order=order, seg_start=seg_start, valid=valid_sorted, row=row, known=known,
-                masks=masks.reshape(-1), n_fill=n_fill, unique=unique, touched=touched.astype(bool),
-                num_fill=jnp.sum(n_fill), num_unique=jnp.sum(unique), num_touched=jnp.sum(touched))
-
-
-_plan_updates_jit = jax.jit(_plan_updates)
+    return dict(sidx=sidx, masks=masks.reshape(-1), n_fill=n_fill, num_fill=jnp.sum(n_fill))
 
 
 @functools.partial(jax.jit, static_argnames=("fill_capacity", "capacity"))
-def _apply_updates(m: OccupancyMap, p, deltas, fill_capacity: int, capacity: int):
+def _apply_updates(m: OccupancyMap, p, s, deltas, fill_capacity: int, capacity: int):
     n = deltas.shape[0]
     code = p["code"]
     base = jnp.where(p["known"], m.log_odds[p["row"]], jnp.float32(0))
@@ -386,38 +407,37 @@ def _apply_updates(m: OccupancyMap, p, deltas, fill_capacity: int, capacity: int
     voxel_keep = p["seg_start"] & p["valid"]
 
     # Fillers: the absent children of each path node, valued as the coarse leaf they split.
-    ends = jnp.cumsum(p["n_fill"])
+    ends = jnp.cumsum(s["n_fill"])
     o = jnp.arange(fill_capacity, dtype=jnp.int32)
-    e = jnp.clip(jnp.searchsorted(ends, o, side="right"), 0, n * _D - 1).astype(jnp.int32)
-    k = o - (ends[e] - p["n_fill"][e])
-    j, lvl = e // _D, e % _D + 1
-    child = jnp.asarray(_KTH_ABSENT)[p["masks"][e], jnp.clip(k, 0, 7)]
+    e = jnp.clip(jnp.searchsorted(ends, o, side="right"), 0, s["n_fill"].shape[0] - 1).astype(jnp.int32)
+    k = o - (ends[e] - s["n_fill"][e])
+    j, lvl = s["sidx"][e // _D], e % _D + 1  # j: the split voxel's row in the sorted updates
+    child = jnp.asarray(_KTH_ABSENT)[s["masks"][e], jnp.clip(k, 0, 7)]
     fill_code = morton.or_offset_words(morton.truncate_words(code[j], lvl - 1), child, 3 * (_D - lvl))
     fill_ok = o < ends[-1]
     fill_value = m.log_odds[p["row"][j]]
 
+    # Old leaves (sorted), updated voxels (sorted by the plan; repeated rows keep their code so
+    # the list stays sorted) and fillers (few: sorted here) are merged, not re-sorted; then
+    # the dropped rows (touched old leaves, repeats, padding) are compacted away.
     keep_old = m.valid_mask() & ~p["touched"]
-    sentinel = jnp.array([morton.SENTINEL_HI, 0], jnp.int32)
-    all_code = jnp.concatenate([
-        jnp.where(keep_old[:, None], m.code, sentinel),
-        jnp.where(fill_ok[:, None], fill_code, sentinel),
-        jnp.where(voxel_keep[:, None], code, sentinel),
-    ])
-    all_depth = jnp.concatenate([m.depth, lvl, jnp.full((n,), _D, jnp.int32)])
-    all_value = jnp.concatenate([m.log_odds, fill_value, new_value])
-    short = capacity - all_depth.shape[0]
-    if short > 0:  # the output bucket can exceed the inputs' total rows
-        all_code = jnp.concatenate([all_code, jnp.broadcast_to(sentinel, (short, 2))])
-        all_depth = jnp.concatenate([all_depth, jnp.full((short,), _D, jnp.int32)])
-        all_value = jnp.concatenate([all_value, jnp.zeros((short,), jnp.float32)])
-    hi, lo, depth, value = jax.lax.sort((all_code[:, 0], all_code[:, 1], all_depth, all_value), num_keys=2)
-    count = (jnp.sum(keep_old) + jnp.sum(fill_ok) + jnp.sum(voxel_keep)).astype(jnp.int32)
-    ok = jnp.arange(capacity) < count
+    bits = lambda v: jax.lax.bitcast_convert_type(v.astype(jnp.float32), jnp.int32)  # noqa: E731
+    sent = jnp.int32(morton.SENTINEL_HI)
+    old = (m.code[:, 0], m.code[:, 1], m.depth, bits(m.log_odds), keep_old.astype(jnp.int32))
+    voxels = (code[:, 0], code[:, 1], jnp.full((n,), _D, jnp.int32), bits(new_value),
+              voxel_keep.astype(jnp.int32))
+    fillers = jax.lax.sort((jnp.where(fill_ok, fill_code[:, 0], sent), jnp.where(fill_ok, fill_code[:, 1], 0),
+                            lvl, bits(fill_value), fill_ok.astype(jnp.int32)), num_keys=2)
+    hi, lo, depth, value, keep = morton.merge_sorted(old, morton.merge_sorted(voxels, fillers))
+    keep = keep != 0
+    rank = _cumsum(keep.astype(jnp.int32))
+    pos = jnp.where(keep, rank - 1, capacity)
+    put = lambda x, fill: jnp.full((capacity,), fill, jnp.int32).at[pos].set(x, mode="drop")  # noqa: E731
     out = OccupancyMap(
-        jnp.stack([hi[:capacity], lo[:capacity]], axis=-1),
-        jnp.where(ok, depth[:capacity], _D),
-        jnp.where(ok, value[:capacity], 0.0).astype(jnp.float32),
-        count, m.params, m.resolution, m.tree_depth,
+        jnp.stack([put(hi, morton.SENTINEL_HI), put(lo, 0)], axis=-1),
+        put(depth, _D),
+        jax.lax.bitcast_convert_type(put(value, 0), jnp.float32),
+        rank[-1], m.params, m.resolution, m.tree_depth,
     )
     return _prune(out)
 
@@ -428,10 +448,13 @@ def _apply(m: OccupancyMap, words, deltas, valid) -> OccupancyMap:
     if n == 0:
         return m
     plan = _plan_updates_jit(m, words, valid)
-    num_fill, num_unique, num_touched = (int(plan[k]) for k in ("num_fill", "num_unique", "num_touched"))
+    num_split, num_unique, num_touched = (int(x) for x in jax.device_get(
+        (plan["num_split"], plan["num_unique"], plan["num_touched"])))
+    splits = _plan_splits(plan, bucket_capacity(num_split, 256))
+    num_fill = int(splits["num_fill"])
     needed = m.num_leaves - num_touched + num_fill + num_unique
     cap = bucket_capacity(max(needed, m.capacity))
-    return _apply_updates(m, plan, deltas, bucket_capacity(num_fill, 256), cap)
+    return _apply_updates(m, plan, splits, deltas, bucket_capacity(num_fill, 256), cap)
 
 
 def _pad_rows(x, n_cap, fill):

@@ -113,6 +113,24 @@ def test_update_inside_a_coarse_leaf_expands_locally():
     assert expanded_dict(out).keys() == expanded_dict(m).keys()
 
 
+def test_voxel_updates_in_any_row_order_give_the_same_map():
+    # sorted rows (as insert gives them) skip the sort; shuffled rows are sorted first
+    rng = np.random.default_rng(3)
+    m = tree.update_points(om.empty(RES), rng.uniform(-0.8, 0.8, (300, 3)), False)
+    m = tree.update_points(m, (np.stack(np.meshgrid(*[np.arange(8)] * 3, indexing="ij"), -1)
+                               .reshape(-1, 3) + 0.5) * RES, True)  # a coarse depth-13 leaf
+    keys = np.unique(rng.integers(32760, 32776, (500, 3)), axis=0).astype(np.uint16)
+    codes = np.sort(morton.keys_to_codes(keys))
+    words = morton.split_codes(codes)
+    deltas = np.where(rng.random(len(codes)) < 0.5, 0.85, -0.4).astype(np.float32)
+    in_order = tree.apply_voxel_updates(m, words, deltas)
+    perm = rng.permutation(len(codes))
+    shuffled = tree.apply_voxel_updates(m, words[perm], deltas[perm])
+    assert tree.equal(in_order, shuffled)
+    assert in_order.num_leaves > m.num_leaves
+    assert_maximally_pruned(in_order)
+
+
 @settings(max_examples=15, deadline=None)
 @given(st.integers(0, 10_000))
 def test_prune_expand_properties(seed):
