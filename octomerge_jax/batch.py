@@ -44,6 +44,7 @@ from .pipeline import (
     MergeError,
     MergeReport,
     _check_T,
+    _displacements,
     _epsilons,
     _icp_dict,
     _icp_kwargs,
@@ -286,6 +287,7 @@ def _report(s, cfg) -> MergeReport:
     eps = (None, None, None, None)
     if s["T_true"] is not None:
         eps = (*_epsilons(s["T_init"], s["T_true"]), *_epsilons(s["T"], s["T_true"]))
+    disp = _displacements(s["m2"], s["T_true"], s["T_init"], s["T"])
     timings = {**s["timings"], "total": sum(s["timings"].values())}
     info = s["info"]
     return MergeReport(
@@ -293,6 +295,7 @@ def _report(s, cfg) -> MergeReport:
         epsilon_r_init=eps[0], epsilon_t_init=eps[1], epsilon_r=eps[2], epsilon_t=eps[3],
         counts=s["counts"], timings=timings, resolution=s["m1"].resolution, T_1_2_true=s["T_true"],
         warnings=tuple(s["warnings"]), status="ok" if info is None or info["converged"] else "not_converged",
+        displacement_init=disp[0], displacement=disp[1],
         icp_result=s["result"], points_1=s["q1"], points_2=s["q2"])
 
 
@@ -300,7 +303,8 @@ def _report(s, cfg) -> MergeReport:
 
 SUMMARY_FIELDS = ["index", "map1", "map2", "output", "status", "kind", "message", "refine",
                   "icp_status", "icp_iterations", "icp_rmse", "icp_fitness", "leaves_merged",
-                  "epsilon_r_init", "epsilon_t_init", "epsilon_r", "epsilon_t", "seconds", "host"]
+                  "epsilon_r_init", "epsilon_t_init", "epsilon_r", "epsilon_t", "displacement_init",
+                  "displacement", "seconds", "host"]
 
 _GUESS = ("x", "y", "z", "roll", "pitch", "yaw")
 
@@ -375,7 +379,8 @@ def _row_result(row: ManifestRow, status, kind="", message="", report=None, seco
             out.update(icp_status=report.icp["status"], icp_iterations=report.icp["num_iterations"],
                        icp_rmse=f"{report.icp['rmse']:.6g}", icp_fitness=f"{report.icp['fitness']:.4g}")
         out["leaves_merged"] = report.counts.get("leaves_merged", "")
-        for k in ("epsilon_r_init", "epsilon_t_init", "epsilon_r", "epsilon_t"):
+        for k in ("epsilon_r_init", "epsilon_t_init", "epsilon_r", "epsilon_t", "displacement_init",
+                  "displacement"):
             v = getattr(report, k)
             out[k] = "" if v is None else f"{v:.6g}"
     return out

@@ -77,6 +77,9 @@ class MergeReport:
       ``map_loss`` per candidate, ``num_hypotheses``), ``None`` for ``refine="none"``.
     - ``epsilon_r_init``, ``epsilon_t_init``, ``epsilon_r``, ``epsilon_t``: thesis eqs. 7.2 /
       7.3 before / after refinement when ``T_1_2_true`` is given (else ``None``).
+    - ``displacement_init``, ``displacement``: mean distance [m] between map 2's occupied leaf
+      centres placed by the guess / the result and by ``T_1_2_true`` (else ``None``). Unlike
+      eps_t it does not grow with the distance of the map from its frame's origin.
     - ``counts``: leaves of both inputs and of the result, occupied and overlap points, fuse
       case counts (``FuseReport.host()``).
     - ``timings``: seconds per stage (``occupied_points``, ``overlap``, ``icp``, ``transform``,
@@ -102,13 +105,15 @@ class MergeReport:
     T_1_2_true: np.ndarray | None = None
     warnings: tuple[str, ...] = ()
     status: str = "ok"
+    displacement_init: float | None = None
+    displacement: float | None = None
     icp_result: object = dataclasses.field(default=None, repr=False, compare=False)
     points_1: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     points_2: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
 
     _JSON_FIELDS = ("status", "refine", "resolution", "T_1_2_init", "T_1_2", "T_1_2_true", "icp",
-                    "epsilon_r_init", "epsilon_t_init", "epsilon_r", "epsilon_t", "counts",
-                    "timings", "warnings")
+                    "epsilon_r_init", "epsilon_t_init", "epsilon_r", "epsilon_t", "displacement_init",
+                    "displacement", "counts", "timings", "warnings")
 
     def to_dict(self) -> dict:
         """JSON-ready dict (matrices as nested lists, row-major)."""
@@ -142,6 +147,9 @@ class MergeReport:
         if self.epsilon_r_init is not None:
             lines.append(f"epsilon_r {self.epsilon_r_init:.4f} -> {self.epsilon_r:.4f}   "
                          f"epsilon_t {self.epsilon_t_init:.4f} -> {self.epsilon_t:.4f} m  (thesis eqs. 7.2/7.3)")
+        if self.displacement_init is not None:
+            lines.append(f"map 2 occupied voxels off the truth by {self.displacement_init:.4f} -> "
+                         f"{self.displacement:.4f} m (mean)")
         c = self.counts
         lines.append(f"leaves: map1 {c.get('leaves_1', 0):,} + map2 {c.get('leaves_2', 0):,} "
                      f"-> merged {c.get('leaves_merged', 0):,}")
@@ -226,6 +234,26 @@ def _timed(timings: dict, name: str, fn, *args, **kwargs):
 def _epsilons(T_est, T_true):
     reg = _reg()
     return float(reg.rotation_error(T_est, T_true)), float(reg.translation_error(T_est, T_true))
+
+
+def _displacements(m2: OccupancyMap, T_true, *Ts, max_points: int = 100_000) -> tuple:
+    """Mean ``point_displacement`` [m] of map 2's occupied leaf centres (an even subsample of
+    at most ``max_points``) under each of ``Ts`` against ``T_true``; ``None``s without truth."""
+    if T_true is None:
+        return (None,) * len(Ts)
+    L = m2.leaves()
+    p = L.centers[L.log_odds > m2.params.occupancy_threshold_log_odds]
+    if len(p) == 0:
+        p = L.centers
+    p = p[:: max(1, -(-len(p) // max_points))]
+    if len(p) == 0:
+        return (None,) * len(Ts)
+    # NumPy float64 (registration.point_displacement on the host): map coordinates can be
+    # kilometres from the origin, where float32 would lose ~1e-4 m
+    Ts, T_true = np.asarray(Ts, np.float64), np.asarray(T_true, np.float64)
+    d = (Ts[:, None, :3, :3] - T_true[:3, :3]) @ p[..., None]
+    d = np.linalg.norm(d[..., 0] + (Ts[:, None, :3, 3] - T_true[:3, 3]), axis=-1)
+    return tuple(float(x) for x in d.mean(axis=-1))
 
 
 def _icp_dict(result, refine: str) -> dict:
@@ -523,7 +551,8 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
         counts=counts, timings=timings, resolution=m1.resolution, T_1_2_true=T_true,
         warnings=tuple(warnings), status="ok" if info is None or info["converged"] else "not_converged",
         icp_result=result, points_1=q1, points_2=q2)
-    return merged, report
+    d = _displacements(m2, T_true, T_init, T_1_2)
+    return merged, dataclasses.replace(report, displacement_init=d[0], displacement=d[1])
 
 
 def _with_overrides(config, refine, overlap, interpolation, rule, resample) -> MergeConfig:
@@ -625,17 +654,18 @@ def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine
         T_i_k, info, result, counts, q1, q2 = register(maps[i], maps[k], T_init, cfg, timings, warnings)
         T_0[k] = T_0[i] @ T_i_k
         timings["total"] = time.perf_counter() - t0
-        eps = (None, None, None, None)
+        eps, disp = (None, None, None, None), (None, None)
         if T_trues[k - 1] is not None:
             T_true = _check_T(T_trues[k - 1], f"T_trues[{k - 1}]")
             eps = (*_epsilons(T_0[i] @ T_init, T_true), *_epsilons(T_0[k], T_true))
+            disp = _displacements(maps[k], T_true, T_0[i] @ T_init, T_0[k])
         reports[k] = MergeReport(
             T_1_2_init=T_init, T_1_2=T_i_k, refine=cfg.registration.refine, icp=info,
             epsilon_r_init=eps[0], epsilon_t_init=eps[1], epsilon_r=eps[2], epsilon_t=eps[3],
             counts={"leaves_1": maps[i].num_leaves, "leaves_2": maps[k].num_leaves, **counts},
             timings=timings, resolution=maps[0].resolution, warnings=tuple(warnings),
             status="ok" if info is None or info["converged"] else "not_converged",
-            icp_result=result, points_1=q1, points_2=q2)
+            displacement_init=disp[0], displacement=disp[1], icp_result=result, points_1=q1, points_2=q2)
     tc = cfg.transform
     moved = [maps[0]]
     t_tr = {}

@@ -112,6 +112,21 @@ def test_geodesic_metrics_hand_computed():
         2 * (1 - np.cos(a)) + 2 * np.sin(a), abs=1e-6)
 
 
+def test_point_displacement_hand_computed_and_frame_independent():
+    A = xyz_rpy64(1, 0, 0, 0, 0, np.pi / 2)  # x -> y, then +1 m in x
+    p = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 5.0]])
+    # A p = (1,0,0), (1,2,0), (1,0,5): displacements 1, |(-1, 2, 0)| = sqrt(5), 1
+    np.testing.assert_allclose(np.asarray(metrics.point_displacement(A, np.eye(4), p)),
+                               [1.0, np.sqrt(5.0), 1.0], atol=1e-6)
+    # the same motion seen from a frame 100 m away: eps_t grows, displacements do not
+    S = xyz_rpy64(100, 0, 0, 0, 0, 0)
+    B = S @ A @ np.linalg.inv(S)
+    assert float(metrics.translation_error(B, np.eye(4))) > 100
+    np.testing.assert_allclose(np.asarray(metrics.point_displacement(B, np.eye(4), p + [100, 0, 0])),
+                               [1.0, np.sqrt(5.0), 1.0], atol=2e-4)  # float32 at 100 m
+    assert metrics.point_displacement(np.stack([A, B]), np.eye(4), p).shape == (2, 3)
+
+
 # ----------------------------------------------------------------------------- rendezvous (eqs. 5.8-5.11)
 
 

@@ -10,7 +10,8 @@ from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best
                     transformed_occupancy)
 from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
                   pad_points, stage_distances)
-from .metrics import rotation_angle_error, rotation_error, translation_distance, translation_error
+from .metrics import (point_displacement, rotation_angle_error, rotation_error, translation_distance,
+                      translation_error)
 from .neighbors import HashGrid, any_within, build_grid, build_grids, nearest
 from .overlap import Overlap, overlap
 from .points import occupied_points
@@ -24,7 +25,7 @@ __all__ = [
     "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
     "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded",
     "pad_points", "stage_distances", "rotation_angle_error", "rotation_error",
-    "translation_distance", "translation_error", "HashGrid", "any_within", "build_grid",
+    "translation_distance", "translation_error", "point_displacement", "HashGrid", "any_within", "build_grid",
     "build_grids", "nearest", "Overlap", "overlap", "occupied_points", "lift_2d",
     "relative_pose_2d", "relative_pose_3d", "rendezvous_transform", "rendezvous_transform_2d",
     "check_rigid", "from_quaternion", "from_xyz_rpy", "inverse", "to_quaternion", "to_xyz_rpy",
