@@ -478,7 +478,7 @@ def rank_by_map_agreement(m1: OccupancyMap, m2: OccupancyMap, result):
     if not usable.any():
         return result, loss
     i = int(np.argmin(np.where(usable, loss, np.inf)))
-    best = jax.tree_util.tree_map(lambda a: a[i] if np.ndim(a) else a, cands)  # `swapped` is shared
+    best = jax.tree_util.tree_map(lambda a: a[i], cands)
     return dataclasses.replace(result, best=best, best_index=np.int32(i)), loss
 
 

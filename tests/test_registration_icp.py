@@ -136,6 +136,20 @@ def test_gradients_match_central_finite_differences(scene):
     assert fd_T == pytest.approx(0.0, abs=1e-4)
 
 
+def test_icp_multi_candidates_are_batched_also_when_swapped():
+    rng = np.random.default_rng(5)
+    big = rng.uniform(-2.0, 2.0, (500, 3)).astype(np.float32)
+    small = big[:300] + np.float32(0.03)
+    for src, tgt, swapped in ((small, big, False), (big, small, True)):
+        r = icp_mod.icp_multi(src, tgt, np.eye(4), resolution=0.1)
+        k = r.hypotheses.shape[0]
+        for name, leaf in vars(r.candidates).items():
+            assert np.shape(leaf)[:1] == (k,), name
+        assert np.asarray(r.candidates.swapped).tolist() == [swapped] * k
+        third = jax.tree_util.tree_map(lambda a: a[3], r.candidates)  # indexable per candidate
+        assert bool(third.swapped) == swapped and bool(r.best.swapped) == swapped
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("yaw_error", [0.5, 1.7])
 def test_icp_multi_reaches_the_truth_from_large_yaw_errors(yaw_error):

@@ -563,7 +563,8 @@ def _check_T(T, name):
 
 
 def _invert_result(r: IcpResult) -> IcpResult:
-    return dataclasses.replace(r, T_target_source=rigid.inverse(r.T_target_source), swapped=jnp.bool_(True))
+    return dataclasses.replace(r, T_target_source=rigid.inverse(r.T_target_source),
+                               swapped=jnp.ones_like(r.swapped))
 
 
 def icp(source, target, T_target_source_init, *, resolution: float,
@@ -635,6 +636,9 @@ def _icp_multi_padded(source, source_count, target, target_count, hypotheses, di
     run = lambda T: _icp_core(source, source_count, target, grids, T, dists, epsilon, final_epsilon,
                               min_inliers, max_iterations, coarse_matching=coarse_matching)
     cands = _uncentre_result(jax.vmap(run)(hyps_c), uncentre)
+    # every field batched along k (a constant field comes out of vmap unbatched)
+    k = hyps_c.shape[0]
+    cands = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k,)) if a.ndim == 0 else a, cands)
     scores = cands.num_close.astype(jnp.float32) - cands.rmse / dists[-1]
     best = jnp.argmax(scores).astype(jnp.int32)
     best_res = jax.tree_util.tree_map(lambda a: a[best], cands)
