@@ -271,8 +271,8 @@ def _multi_result(Ts, status):
                   num_iterations=z + 10, num_inliers=z + 100, rmse=np.full(k, 0.05, np.float32),
                   fitness=np.ones(k, np.float32), num_close=z + 50,
                   correspondence_distance=np.full(k, 0.4, np.float32),
-                  status=np.asarray(status, np.int32), grid_overflow=z, swapped=np.bool_(False))
-    best = jax.tree_util.tree_map(lambda a: a[0] if np.ndim(a) else a, c)
+                  status=np.asarray(status, np.int32), grid_overflow=z, swapped=np.zeros(k, bool))
+    best = jax.tree_util.tree_map(lambda a: a[0], c)
     return IcpMultiResult(best, c, np.int32(0), np.zeros(k, np.float32), np.asarray(Ts, np.float32))
 
 
