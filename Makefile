@@ -20,7 +20,7 @@ demo: setup
 
 ## test: set up and run the test suite (what CI runs)
 test: setup
-	$(BIN)/python -m pytest -m "not slow"
+	$(BIN)/python -m pytest -m "not slow" -n auto --dist loadfile
 
 clean:
 	rm -rf $(VENV) octomerge-demo .pytest_cache .hypothesis
