@@ -200,8 +200,7 @@ def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
         plan = resample._plan(m, resample.check_rigid_transform(T), method, "probability", 128, None)
         jax.block_until_ready(plan.args)
         t1 = time.perf_counter()
-        raw, total, _ = resample._transform_kernel(*plan.args, chunk=plan.chunk,
-                                                out_capacity=plan.out_capacity)
+        raw, _ = resample._run_kernel(plan)
         jax.block_until_ready(raw.code)
         t2 = time.perf_counter()
         jax.block_until_ready(resample._run(plan).code)  # kernel again + prune

@@ -375,8 +375,10 @@ def test_padding_invariance():
     T = make_T(rot("z", 0.9), (0.11, 0.0, -0.05))
     a = resample.transform_map(m, T)
     # Neither padding the source, nor the chunking of destination bricks, nor an output
-    # capacity guess that overflows (the kernel reruns bigger) changes the result (one call
-    # covers all three, to spend few compilations).
+    # capacity guess that fills up (the buffers grow and the kernel resumes at the chunk that
+    # did not fit, several times here) changes the result (one call covers all three, to spend
+    # few compilations).
+    assert a.num_leaves > 4 * 256
     c = resample.transform_map(big, T, chunk_bricks=7, out_capacity=256)
     assert tree.equal(a, c)
 
