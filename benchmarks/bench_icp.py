@@ -73,6 +73,9 @@ def errs(T, T_true):
     return float(metrics.rotation_angle_error(T, T_true)), float(metrics.translation_distance(T, T_true))
 
 
+COARSE = "centroid"  # ours: coarse_matching (--coarse-matching)
+
+
 def bench_sizes(resolutions, repeats):
     print("\n## single pair: time to converge and final error (init: yaw 0.05 rad, t 0.2/0.1 m; clouds = "
           "bbox overlap under the initial guess, as the pipeline registers them)")
@@ -83,7 +86,7 @@ def bench_sizes(resolutions, repeats):
         T0 = xyz_rpy64(0.2, 0.1, 0.0, 0.0, 0.0, 0.05) @ T12
         o = overlap(P1, P2, T0, "bbox")
         p1, p2 = P1[np.asarray(o.mask_1)], P2[np.asarray(o.mask_2)]
-        r, first, ours = timed(lambda: icp_mod.icp(p2, p1, T0, resolution=res), repeats)
+        r, first, ours = timed(lambda: icp_mod.icp(p2, p1, T0, resolution=res, coarse_matching=COARSE), repeats)
         e = errs(r.T_target_source, T12)
         row = f"{res:5.2f} {len(p2):7d} {len(p1):7d} | {first:10.2f} {ours:7.2f} {e[0]:7.4f}/{e[1]:7.4f} | "
         if o3d is not None:
@@ -156,7 +159,8 @@ def bench_grid(res, z_max):
             # fixed capacities: one compilation for the whole grid
             s, sc = icp_mod.pad_points(q2, cap2)
             tg, tc = icp_mod.pad_points(q1, cap1)
-            r = icp_mod.icp(s, tg, T0, resolution=res, source_count=sc, target_count=tc)
+            r = icp_mod.icp(s, tg, T0, resolution=res, source_count=sc, target_count=tc,
+                            coarse_matching=COARSE)
             cells.append(("ours " + method, np.asarray(r.T_target_source, np.float64)))
             if o3d is not None and len(q1) > 10 and len(q2) > 10:
                 cells.append(("o3d " + method, run_o3d(q1, q2, T0, res)))
@@ -185,9 +189,14 @@ def main():
     ap.add_argument("--grid-zmax", type=float, default=1.0)
     ap.add_argument("--skip-sizes", action="store_true")
     ap.add_argument("--skip-grid", action="store_true")
+    ap.add_argument("--coarse-matching", default="centroid", choices=icp_mod.COARSE_MATCHING,
+                    help="ours: matching on the coarse stages (see registration.icp)")
     args = ap.parse_args()
+    global COARSE
+    COARSE = args.coarse_matching
     print(f"# bench_icp  jax {jax.__version__} ({jax.default_backend()}), {platform.processor() or platform.machine()}, "
-          f"open3d {'yes' if o3d else 'missing'}, small_gicp {'yes' if sg else 'missing'}")
+          f"open3d {'yes' if o3d else 'missing'}, small_gicp {'yes' if sg else 'missing'}, "
+          f"ours coarse_matching={COARSE}")
     if not args.skip_sizes:
         bench_sizes(args.res, args.repeats)
     if args.multi:

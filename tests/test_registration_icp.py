@@ -156,7 +156,8 @@ def test_icp_multi_reaches_the_truth_from_large_yaw_errors(yaw_error):
     """Table 7.1 row 1 (0.5 rad) and Table 7.2 row 7 (1.7 rad) failed in the thesis: from
     either start some hypothesis converges to the truth. Which candidate wins on points alone
     is a coin flip on this scene: the room turned by pi (14 m away) fits as many points within
-    half a voxel as the truth (measured 7436 vs 7421). The pipeline's ``refine="multi"``
+    half a voxel as the truth (measured 7436 vs 7421 from 0.5 rad; 7348 vs 7434 from 1.7 rad,
+    where float rounding of another run had given a closer tie). The pipeline's ``refine="multi"``
     re-ranks the candidates by map agreement, free space included, and picks the truth
     (``tests/test_dense.py``)."""
     p1, p2, T12 = scene_pair(0.2, crop_1=(-1.0, 11.5), crop_2=(0.5, 13.0))  # mostly common maps
@@ -169,9 +170,9 @@ def test_icp_multi_reaches_the_truth_from_large_yaw_errors(yaw_error):
     for i in right:  # the thesis's "coherent merge" criteria (§7.1.3); ~0.3 m of sliding here
         assert float(metrics.rotation_error(multi.candidates.T_target_source[i], T12)) < 0.25
         assert float(metrics.translation_error(multi.candidates.T_target_source[i], T12)) < 0.9
-    # the point score cannot tell the truth from the turned room: within 1 %
+    # the point score cannot tell the truth from the turned room: within 2 %
     best_right = max(int(multi.candidates.num_close[i]) for i in right)
-    assert best_right >= 0.99 * int(multi.best.num_close)
+    assert best_right >= 0.98 * int(multi.best.num_close)
     np.testing.assert_allclose(np.asarray(multi.candidates.T_target_source[multi.best_index]),
                                np.asarray(multi.best.T_target_source))
 
@@ -195,3 +196,36 @@ def test_no_worse_than_small_gicp_on_exact_lattice_grid(scene):
         o_rot, o_tr = _errors(ours.T_target_source, T_true)
         s_rot, s_tr = _errors(r.T_target_source, T_true)
         assert o_rot <= s_rot + 1e-3 and o_tr <= s_tr + 1e-3, (e, o_rot, o_tr, s_rot, s_tr)
+
+
+def test_voxel_downsample_matches_numpy():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-1.0, 1.0, (500, 3)).astype(np.float32)
+    n_valid, cell = 430, 0.3
+    cent, w, m = icp_mod._voxel_downsample(jnp.asarray(pts), jnp.arange(500) < n_valid, 0.3)
+    keys = np.floor(pts[:n_valid] / np.float32(cell)).astype(np.int64)
+    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    ref_c = np.stack([np.bincount(inv.ravel(), weights=pts[:n_valid, a]) for a in range(3)], -1)
+    ref_w = np.bincount(inv.ravel()).astype(np.float64)
+    assert int(m) == len(uniq)
+    got_c, got_w = np.asarray(cent)[: int(m)], np.asarray(w)[: int(m)]
+    assert np.all(np.asarray(w)[int(m):] == 0) and got_w.sum() == n_valid
+    order = np.lexsort(np.floor(got_c / cell).T[::-1])  # both in cell order (x slowest)
+    ref_order = np.lexsort(uniq.T[::-1])
+    np.testing.assert_allclose(got_w[order], ref_w[ref_order])
+    np.testing.assert_allclose(got_c[order], (ref_c / ref_w[:, None])[ref_order], atol=1e-6)
+
+
+def test_symmetric_coarse_matching_recovers_exactly(scene):
+    """Coarse stages on the source's voxel-grid centroids: same exact end point without noise,
+    and the last stage's inliers are the source points (not centroids)."""
+    p1, _, _ = scene
+    T_true = xyz_rpy64(0.4, -0.3, 0.1, 0.03, -0.02, 0.15)
+    src = _moved(p1[::2], np.linalg.inv(T_true))
+    r = icp_mod.icp(src, p1, np.eye(4), resolution=RES, coarse_matching="symmetric")
+    assert int(r.status) == icp_mod.STATUS_CONVERGED
+    rot, tr = _errors(r.T_target_source, T_true)
+    assert rot < 1e-4 and tr < 1e-4
+    assert int(r.num_inliers) == len(src)
+    with pytest.raises(ValueError, match="coarse_matching"):
+        icp_mod.icp(src, p1, np.eye(4), resolution=RES, coarse_matching="both")
