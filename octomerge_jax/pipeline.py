@@ -299,7 +299,7 @@ def _icp_kwargs(cfg: MergeConfig, resolution: float) -> dict:
                 min_correspondence_distance=r.min_correspondence_distance,
                 shrink_factor=r.shrink_factor, transformation_epsilon=r.transformation_epsilon,
                 max_iterations=r.max_iterations, cell_capacity=r.cell_capacity,
-                min_inliers=r.min_inliers)
+                min_inliers=r.min_inliers, coarse_matching=r.coarse_matching)
 
 
 VOXEL_OVERLAP_VOXELS = 3.0

@@ -245,6 +245,18 @@ def test_icp_trace_matches_icp(merged_icp):
     assert tr["rmse"][-1] <= tr["rmse"][0]
 
 
+def test_merge_with_symmetric_coarse_matching(merged_icp):
+    """registration.coarse_matching reaches ICP: 'symmetric' registers the pair as well as the
+    default does (same limits as test_merge_recovers_transform_and_composes_stages)."""
+    m1, m2, T = small_pair()
+    cfg = MergeConfig().replace(registration={"coarse_matching": "symmetric"})
+    _, rep = merge(m1, m2, perturbed(), config=cfg, T_1_2_true=T)
+    assert rep.icp["converged"] and rep.epsilon_r < 0.1 and rep.epsilon_t < 0.15
+    assert rep.displacement < 2 * m1.resolution
+    # a different coarse path, so a (slightly) different transform than the default's
+    assert not np.array_equal(rep.T_1_2, merged_icp[1].T_1_2)
+
+
 def test_config_round_trip_and_errors(tmp_path):
     cfg = MergeConfig().replace(registration={"refine": "multi", "overlap_margin": 0.5},
                                 fuse={"rule": "max"})
@@ -262,6 +274,8 @@ def test_config_round_trip_and_errors(tmp_path):
         load_config(tmp_path / "bad2.toml")
     with pytest.raises(ValueError, match="registration.refine must be one of"):
         MergeConfig().replace(registration={"refine": "gicp"})
+    with pytest.raises(ValueError, match="registration.coarse_matching must be one of"):
+        MergeConfig().replace(registration={"coarse_matching": "both"})
     (tmp_path / "part.toml").write_text("[fuse]\nrule = 'max'\n")
     assert load_config(tmp_path / "part.toml") == MergeConfig().replace(fuse={"rule": "max"})
 

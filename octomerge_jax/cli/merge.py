@@ -62,6 +62,9 @@ def register(subparsers) -> None:
                    help="resampling of map 2 (default trilinear)")
     a.add_argument("--rule", choices=("sum", "max", "weighted"), help="log-odds fusion rule (default sum)")
     a.add_argument("--max-iterations", type=int, help="ICP iteration limit")
+    a.add_argument("--coarse-matching", choices=("centroid", "symmetric", "nearest"),
+                   help="ICP's coarse stages (default centroid; symmetric: both clouds downsampled, "
+                        "faster and on our benchmark more accurate)")
     a.add_argument("--resample", action="store_true",
                    help="allow maps of different resolutions (map 2 is resampled onto map 1's grid)")
     a.add_argument("--strict", action="store_true", help="fail (exit 5) if ICP does not converge")
@@ -100,7 +103,7 @@ def config_from_args(args):
     cfg = load_config(args.config) if getattr(args, "config", None) else MergeConfig()
     reg, tr, fu = {}, {}, {}
     for key, section in (("refine", reg), ("overlap", reg), ("interpolation", tr), ("rule", fu),
-                         ("max_iterations", reg)):
+                         ("max_iterations", reg), ("coarse_matching", reg)):
         v = getattr(args, key, None)
         if v is not None:
             section[key] = v
