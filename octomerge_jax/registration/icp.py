@@ -46,9 +46,10 @@ voxel-grid centroids at ``d/2`` (weighted by their point counts in the Kabsch so
 energy), as the thesis code downsampled both clouds. Far fewer queries on coarse stages, where
 half or more of the iterations are spent (0.05 m room pair: 1.97 -> 1.54 s); on 10 starts of
 the benchmark pair at 0.2 / 0.1 m the mean final rotation error falls from 0.016 to 0.0045 rad
-(worst 0.068 -> 0.011), the Table 7.1-style grid is unchanged (9/18 coherent), but on some pairs
-it ends in another lattice-level minimum (one test merge: one voxel off where ``"centroid"`` is
-exact), so it is not the default yet.
+(worst 0.068 -> 0.011) and the Table 7.1-style grid is unchanged (9/18 coherent). It is not the
+default: the source cells are ``5 res`` wide on the first stage, too coarse for small scenes at
+coarse resolutions (the 12 m test room at 0.4 m: 2 m cells, a noisy pair ends 0.076 rad off
+where ``"centroid"`` is exact; at 0.2 m 0.026 rad, at 0.1 m exact).
 
 **Stopping.** A stage ends when the change falls below ``epsilon`` or, on coarse stages, when
 the truncated energy (mean of ``min(d^2, d_stage^2)``) has not improved by 0.1 % for 3
