@@ -35,6 +35,7 @@ __all__ = [
     "REFINE_CHOICES",
     "OVERLAP_CHOICES",
     "ON_NOT_CONVERGED_CHOICES",
+    "COARSE_MATCHING_CHOICES",
     "config_from_dict",
     "config_to_dict",
     "dumps_toml",
@@ -45,6 +46,7 @@ __all__ = [
 REFINE_CHOICES = ("icp", "multi", "none", "dense", "icp+dense")
 OVERLAP_CHOICES = ("voxel", "bbox", "none")
 ON_NOT_CONVERGED_CHOICES = ("warn", "error", "use_initial")
+COARSE_MATCHING_CHOICES = ("centroid", "symmetric", "nearest")  # registration.icp.COARSE_MATCHING
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,7 +186,7 @@ def validate(cfg: MergeConfig) -> None:
     _choice(r.refine, REFINE_CHOICES, "registration.refine")
     _choice(r.overlap, OVERLAP_CHOICES, "registration.overlap")
     _choice(r.on_not_converged, ON_NOT_CONVERGED_CHOICES, "registration.on_not_converged")
-    _choice(r.coarse_matching, ("centroid", "symmetric", "nearest"), "registration.coarse_matching")
+    _choice(r.coarse_matching, COARSE_MATCHING_CHOICES, "registration.coarse_matching")
     _choice(t.interpolation, ("trilinear", "nearest", "thesis"), "transform.interpolation")
     _choice(t.space, ("probability", "log_odds"), "transform.space")
     _choice(f.rule, ("sum", "max", "weighted"), "fuse.rule")

@@ -27,8 +27,9 @@ inverse image of its 512 voxel centres plus interpolation neighbours lies inside
 window of source bricks (image width <= 7 sqrt(3) + 1 < 16 voxels); the host also looks up
 the window's 27 rows of a brick-indexed table of the source (one dense 512-value row per
 brick holding leaves finer than a brick, one constant row per distinct value of whole-brick
-leaves, NaN rows for unknown space). A jitted loop (``lax.fori_loop`` of dynamic length)
-then walks the destination bricks in fixed-size chunks; the 8 neighbour reads of a voxel are plain gathers from that table.
+leaves, NaN rows for unknown space). A jitted loop of dynamic length (``lax.while_loop``) then
+walks the destination bricks in fixed-size chunks; the 8 neighbour reads of a voxel are plain
+gathers from that table.
 Per-voxel data are kept as separate arrays per axis and per corner and the blend is one
 formula for every mode, so XLA's CPU loops vectorise (~0.1 us per voxel). Each brick is
 pruned inside itself (levels 16 -> 13) before its leaves are appended to the output; the
@@ -785,7 +786,7 @@ def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
         (unknown neighbours weigh as probability 0, as Appendix A.2; bugs fixed).
       space: interpolate in ``"probability"`` (thesis) or ``"log_odds"``; ``"thesis"``
         requires ``"probability"``.
-      chunk_bricks: destination bricks (8^3 voxels) per scan step (static; a step's work
+      chunk_bricks: destination bricks (8^3 voxels) per loop step (static; a step's work
         arrays take roughly ``chunk_bricks * 512 * 8 * 16`` bytes).
       out_capacity: static output capacity before the final prune; default a guess from the
         leaf and brick counts, grown (the kernel resumes where it stopped) if it fills up.

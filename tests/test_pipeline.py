@@ -8,6 +8,7 @@ one capacity bucket and the whole file shares one set of compiled kernels.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import math
 import tomllib
@@ -17,7 +18,8 @@ import numpy as np
 import pytest
 
 from octomerge_jax import morton, tree
-from octomerge_jax.config import MergeConfig, config_from_dict, dumps_toml, load_config, save_config
+from octomerge_jax.config import (COARSE_MATCHING_CHOICES, MergeConfig, config_from_dict, dumps_toml,
+                                  load_config, save_config)
 from octomerge_jax.fuse import fuse
 from octomerge_jax.map import from_leaves
 from octomerge_jax.pipeline import (
@@ -276,6 +278,9 @@ def test_config_round_trip_and_errors(tmp_path):
         MergeConfig().replace(registration={"refine": "gicp"})
     with pytest.raises(ValueError, match="registration.coarse_matching must be one of"):
         MergeConfig().replace(registration={"coarse_matching": "both"})
+    # the config's (jax-free) list of choices names exactly the ICP modes
+    icp_mod = importlib.import_module("octomerge_jax.registration.icp")
+    assert sorted(COARSE_MATCHING_CHOICES) == sorted(icp_mod.COARSE_MATCHING)
     (tmp_path / "part.toml").write_text("[fuse]\nrule = 'max'\n")
     assert load_config(tmp_path / "part.toml") == MergeConfig().replace(fuse={"rule": "max"})
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..config import REFINE_CHOICES
+from ..config import COARSE_MATCHING_CHOICES, REFINE_CHOICES
 
 import argparse
 import math
@@ -62,7 +62,7 @@ def register(subparsers) -> None:
                    help="resampling of map 2 (default trilinear)")
     a.add_argument("--rule", choices=("sum", "max", "weighted"), help="log-odds fusion rule (default sum)")
     a.add_argument("--max-iterations", type=int, help="ICP iteration limit")
-    a.add_argument("--coarse-matching", choices=("centroid", "symmetric", "nearest"),
+    a.add_argument("--coarse-matching", choices=COARSE_MATCHING_CHOICES,
                    help="ICP's coarse stages (default centroid; symmetric: both clouds downsampled, "
                         "faster and on our benchmark more accurate)")
     a.add_argument("--resample", action="store_true",

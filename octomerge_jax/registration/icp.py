@@ -371,12 +371,12 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
         i = jnp.minimum(stage, clouds[0].shape[0] - 1)
         return clouds[0][i], clouds[1][i], clouds[2][i]
 
-    def correspond(T, stage, src=None):
-        # coarse stages: the nearest sub-cell centroid of the stage's grid ("centroid"), or
-        # the exact nearest target point when one lies within the floor distance and the
-        # nearest centroid otherwise ("nearest"); last stage: the exact nearest point.
-        # Queries: the stage's cloud, or ``src`` = (points, weights, count) when given.
-        pts, wt, cnt = cloud(stage) if src is None else src
+    def correspond(T, stage, queries):
+        # coarse stages: the nearest sub-cell centroid of the stage's grid ("centroid",
+        # "symmetric"), or the exact nearest target point when one lies within the floor
+        # distance and the nearest centroid otherwise ("nearest"); last stage: the exact
+        # nearest point. ``queries`` = (points, weights, count), e.g. ``cloud(stage)``.
+        pts, wt, cnt = queries
         p = rigid.transform_points(T, pts)
         if coarse_matching != "nearest":  # one query; the level is data (no cond: vmap-friendly)
             return _finish_match(*neighbors.nearest_with_points(grids, p, stage, cnt), stage, wt)
@@ -396,11 +396,11 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
         w = (wt > 0) & (idx >= 0) & (d2 <= dmax * dmax)
         return d2, jnp.maximum(idx, 0), w, match
 
-    def energy(d2, stage):
-        # truncated least squares: weighted mean over the stage's cloud of min(d^2, d_stage^2),
-        # comparable between iterates of one stage (the safeguard of the accelerated steps)
+    def energy(d2, stage, wt):
+        # truncated least squares: weighted mean over the stage's cloud (weights ``wt``) of
+        # min(d^2, d_stage^2), comparable between iterates of one stage (the safeguard of the
+        # accelerated steps)
         dmax2 = dists[stage] * dists[stage]
-        _, wt, _ = cloud(stage)
         return jnp.sum(wt * jnp.minimum(jnp.where(wt > 0, d2, 0.0), dmax2)) / jnp.maximum(jnp.sum(wt), 1.0)
 
     zero6 = jnp.zeros((6,), jnp.float32)
@@ -409,14 +409,14 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
     def body(state):
         (T, stage, it, done, status, idx_k, w_k, match_k, T_plain, accel, E_prev, T_ref, dF, dG, n_hist,
          f_prev, g_prev, E_best, stall) = state
-        d2, idx, w, match = correspond(T, stage)
-        E = energy(d2, stage)
+        pts, wt, _ = queries = cloud(stage)
+        d2, idx, w, match = correspond(T, stage, queries)
+        E = energy(d2, stage, wt)
         # safeguard (Zhang et al. 2021, "Fast and robust ICP"): an accelerated iterate that
         # does not lower the energy is replaced by the plain step it extrapolated from
         reject = accel & ~(E < E_prev)
         n_in = jnp.sum(w)
         enough = n_in >= min_inliers
-        pts, wt, _ = cloud(stage)
         G = jnp.where(enough, _kabsch(pts, jnp.where(w[:, None], match, 0.0), jnp.where(w, wt, 0.0)), T)
         change = jnp.sum(jnp.abs(G - T))
         last = stage == last_stage
@@ -469,7 +469,7 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
     state = jax.lax.while_loop(cond, body, init)
     _, stage, it, done, status, idx, w, match, T = state[:9]
     status = jnp.where(done, status, STATUS_MAX_ITERATIONS).astype(jnp.int32)
-    full = (src_sg, valid.astype(jnp.float32), source_count)
+    full = tuple(x[-1] for x in clouds)  # the last stage's cloud: the source points
     if clouds[0].shape[0] > 1:
         # stopped on a coarse stage (max_iterations): its correspondences name centroids;
         # the derivative below needs the source points' own, at that stage
