@@ -303,6 +303,29 @@ def sample(m: OccupancyMap, points, *, space: str = "probability", method: str =
 # ----------------------------------------------------------------------------- source view
 
 
+def _aligned_full(shape, fill, dtype, align: int = 64) -> np.ndarray:
+    """``np.full`` whose data start on an ``align``-byte boundary (zero-copy to XLA:CPU)."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape))
+    raw = np.empty(n * dtype.itemsize + align, np.uint8)
+    start = -raw.ctypes.data % align
+    out = raw[start:start + n * dtype.itemsize].view(dtype).reshape(shape)
+    out.fill(fill)
+    return out
+
+
+def _to_device(x: np.ndarray, like: jax.Array) -> jax.Array:
+    """Host array -> an array on the device of ``like``. On a CPU device an aligned array is
+    shared, not copied (the source table is hundreds of MB and fresh pages are costly);
+    elsewhere a plain transfer."""
+    devices = like.devices() if isinstance(like, jax.Array) else set()
+    device = next(iter(devices)) if len(devices) == 1 else None
+    if device is not None and device.platform == "cpu" and x.ctypes.data % 64 == 0:
+        shared = jnp.from_dlpack(x)
+        return shared if shared.devices() == devices else jax.device_put(shared, device)
+    return jax.device_put(x, device)
+
+
 def _source_view(m: OccupancyMap):
     """Host: the brick-indexed view of the source.
 
@@ -311,33 +334,40 @@ def _source_view(m: OccupancyMap):
     contains leaves finer than a brick (NaN = unknown; ``n_dense`` rows), then one constant
     row per distinct value of the leaves that cover whole bricks (depth <= 13), then NaN rows
     (the first is ``nan_row``). ``bricks`` lists the key (finest key >> 3) of every brick a
-    leaf covers and ``brick_rows`` its table row. Memory: 2 KiB per dense brick.
+    leaf covers and ``brick_rows`` its table row. Memory: 2 KiB per dense brick. Works on the
+    int32 code words (hi, lo: 24 bits each; a brick is ``hi, lo >> 9``): every full-length
+    temporary is a page-faulted pass here.
     """
     n = m.num_leaves
-    codes = morton.join_codes(np.asarray(m.code)[:n])
+    words = np.asarray(m.code)[:n]
     depth = np.asarray(m.depth)[:n]
     lo = np.asarray(m.log_odds)[:n]
     fine = depth > _BRICK_DEPTH
-    c, d, v = codes[fine], depth[fine], lo[fine]
-    bcode = c >> np.uint64(9)  # leaves are Morton-sorted, so a brick's leaves are contiguous
-    first = np.ones(bcode.shape, bool)
-    first[1:] = bcode[1:] != bcode[:-1]
-    n_db = int(first.sum())
-    slot = np.cumsum(first) - 1
+    hi_w, lo_w, d, v = words[fine, 0], words[fine, 1], depth[fine], lo[fine]
+    # leaves are Morton-sorted, so a brick's leaves are contiguous
+    first = np.ones(hi_w.shape, bool)
+    np.not_equal(lo_w[1:] >> 9, lo_w[:-1] >> 9, out=first[1:])
+    first[1:] |= hi_w[1:] != hi_w[:-1]
+    n_db = int(np.count_nonzero(first))
     uniq, inv = np.unique(lo[~fine], return_inverse=True)
     rows = _fine_bucket(n_db + uniq.size + 1)
-    table = np.full((rows, _BV), np.nan, np.float32)
-    local = (c & np.uint64(_BV - 1)).astype(np.int64)
+    table = _aligned_full((rows, _BV), np.nan, np.float32)
+    itype = np.int32 if rows * _BV < 2 ** 31 else np.int64
+    flat = np.cumsum(first, dtype=itype)  # slot + 1, then the voxel index in the table
+    flat -= 1
+    flat *= _BV
+    flat += lo_w & (_BV - 1)
     for depth_l in (14, 15, 16):
         sel = d == depth_l
         if sel.any():
             span = 8 ** (_D - depth_l)
-            view = table[:n_db].reshape(n_db * (_BV // span), span)
-            view[slot[sel] * (_BV // span) + local[sel] // span] = v[sel, None]
+            table.reshape(-1, span)[flat[sel] // span] = v[sel, None]
     table[n_db:n_db + uniq.size] = uniq[:, None]
-    keys = [morton.codes_to_keys(c[first]).astype(np.int64) >> 3]
+    keys = [morton.codes_to_keys(morton.join_codes(np.stack([hi_w[first], lo_w[first]], -1)))
+            .astype(np.int64) >> 3]
     brick_rows = [np.arange(n_db, dtype=np.int32)]
-    ck, cd, crow = codes[~fine], depth[~fine], n_db + inv.reshape(-1).astype(np.int32)
+    ck, cd = morton.join_codes(words[~fine]), depth[~fine]
+    crow = n_db + inv.reshape(-1).astype(np.int32)
     for dl in np.unique(cd):  # a depth-d leaf covers 8^(13 - d) bricks
         sel = cd == dl
         w = 1 << (_BRICK_DEPTH - int(dl))
@@ -382,10 +412,14 @@ def _plan_dest_bricks(src_bkeys: np.ndarray, T_key) -> np.ndarray:
         return np.zeros((0, 3), np.int64)
     ext = hi - lo + 1
     total = int(np.prod(ext))
-    cand = bmin[:, None, :] + _CORNERS_27[None]  # (n, 27, 3); image spans <= 3 bricks per axis
-    ok = np.all(cand <= bmax[:, None, :], axis=-1) & np.all((cand >= lo) & (cand <= hi), axis=-1)
-    cand = cand[ok] - lo
-    lin = (cand[:, 2] * ext[1] + cand[:, 1]) * ext[0] + cand[:, 0]
+    itype = np.int32 if total < 2 ** 31 else np.int64
+    # candidates bmin + {0, 1, 2} per axis (an image spans <= 3 bricks), kept where <= bmax
+    # and inside the key range; linear index x + ext_x (y + ext_y z), built axis by axis
+    q = [(bmin[:, a, None] + np.arange(3) - lo[a]).astype(itype) for a in range(3)]
+    ok = [(q[a] <= bmax[:, a, None] - lo[a]) & (q[a] >= 0) & (q[a] < ext[a]) for a in range(3)]
+    lin = (q[2][:, :, None, None] * itype(ext[1]) + q[1][:, None, :, None]) * itype(ext[0]) \
+        + q[0][:, None, None, :]
+    lin = lin[ok[2][:, :, None, None] & ok[1][:, None, :, None] & ok[0][:, None, None, :]]
     if total <= (1 << 28):  # a brick-level bitmap (1 byte per 512 voxels of the bounding box)
         bitmap = np.zeros(total, bool)
         bitmap[lin] = True
@@ -397,8 +431,6 @@ def _plan_dest_bricks(src_bkeys: np.ndarray, T_key) -> np.ndarray:
     return keys[order]
 
 
-_CORNERS_27 = np.stack(np.meshgrid(np.arange(3), np.arange(3), np.arange(3), indexing="ij"),
-                       -1).reshape(-1, 3)[:, ::-1].astype(np.int64)  # index x + 3 y + 9 z
 
 
 # ----------------------------------------------------------------------------- kernel
@@ -641,16 +673,6 @@ def _run_kernel(plan: "_Plan") -> tuple[OccupancyMap, int]:
     return OccupancyMap(*bufs, jnp.int32(offset), m.params, m.resolution, m.tree_depth), offset
 
 
-def _compact_rows(keep, cap, *arrays_fill):
-    """Rows where ``keep`` moved to the front (order kept) of arrays of ``cap`` rows."""
-    pos = jnp.where(keep, jnp.cumsum(keep) - 1, cap)
-    out = []
-    for x, fill in arrays_fill:
-        buf = jnp.full((cap,) + x.shape[1:], fill, x.dtype)
-        out.append(buf.at[pos].set(x, mode="drop"))
-    return out
-
-
 def _prune_whole_bricks(codes, values):
     """Host: maximal prune of whole-brick leaves ``codes (n,) uint64`` (sorted, all depth
     13) with log-odds ``values (n,)``: eight siblings of equal log-odds (exact float
@@ -686,17 +708,49 @@ def _prune_whole_bricks(codes, values):
     return np.flatnonzero(dropped), head, depth[head]
 
 
-@functools.partial(jax.jit, static_argnames=("capacity",))
-def _apply_brick_merges(m: OccupancyMap, drop, head, head_depth, capacity: int) -> OccupancyMap:
-    """Drop rows ``drop`` of the brick-pruned output and set the depth of rows ``head`` to
-    ``head_depth`` (index padding: out of range); compact to ``capacity`` rows, order kept."""
-    keep = m.valid_mask().at[drop].set(False, mode="drop")
-    depth = m.depth.at[head].set(head_depth, mode="drop")
-    sentinel = jnp.array([morton.SENTINEL_HI, 0], jnp.int32)
-    code, depth, lo = _compact_rows(keep, capacity, (m.code, sentinel), (depth, _D),
-                                    (m.log_odds, jnp.float32(0)))
-    count = jnp.sum(keep, dtype=jnp.int32)
-    return OccupancyMap(code, depth, lo, count, m.params, m.resolution, m.tree_depth)
+_COMPACT_CHUNK = 1 << 16  # rows per step of the in-place compaction
+
+
+@functools.partial(jax.jit, donate_argnums=(0, 1, 2), static_argnames=("step",))
+def _apply_brick_merges(code, depth, log_odds, count, drop, head, head_depth, *,
+                        step: int = _COMPACT_CHUNK):
+    """In place (the buffers are donated): drop rows ``drop`` (sorted ascending, padded with
+    the capacity) of the brick-pruned output ``code (n, 2), depth (n,), log_odds (n,)``
+    holding ``count`` rows, and set the depth of rows ``head`` to ``head_depth`` (padding: out
+    of range). Returns ``(code, depth, log_odds, new_count)``, order kept.
+
+    Only the rows after the first dropped one move, each by the number of drops before it:
+    a loop over chunks of rows reads a chunk, compacts it and writes it back at its new start,
+    which is never after its old start, so no unread row is overwritten. A compaction into
+    new buffers would page-fault hundreds of MB at millions of leaves. ``step``: rows per
+    loop step (static; capped to the largest power of two dividing the capacity)."""
+    cap = code.shape[0]
+    step = min(step, cap & -cap)  # capacities are q 2^k
+    depth = depth.at[head].set(head_depth, mode="drop")
+    n_drop = jnp.sum(drop < cap, dtype=jnp.int32)
+    fills = (jnp.array([morton.SENTINEL_HI, 0], jnp.int32), jnp.int32(_D), jnp.float32(0))
+
+    def body(k, bufs):
+        start = k * step
+        local = jnp.where(drop >= start, drop - start, step)  # no negative (wrapping) index
+        keep = jnp.ones(step, bool).at[local].set(False, mode="drop")
+        pos = jnp.where(keep, jnp.cumsum(keep) - 1, step)
+        dst = start - jnp.searchsorted(drop, start).astype(jnp.int32)
+        out = []
+        for buf, fill in zip(bufs, fills):
+            rows = jax.lax.dynamic_slice_in_dim(buf, start, step)
+            packed = jnp.full_like(rows, fill).at[pos].set(rows, mode="drop")
+            out.append(jax.lax.dynamic_update_slice_in_dim(buf, packed, dst, axis=0))
+        return tuple(out)
+
+    first = jnp.where(n_drop > 0, drop[0] // step, 0)
+    last = jnp.where(n_drop > 0, (count + step - 1) // step, 0)
+    bufs = jax.lax.fori_loop(first, last, body, (code, depth, log_odds))
+    new_count = count - n_drop
+    stale = jnp.where(jnp.arange(drop.shape[0]) < n_drop,
+                      new_count + jnp.arange(drop.shape[0], dtype=jnp.int32), cap)
+    bufs = [buf.at[stale].set(fill, mode="drop") for buf, fill in zip(bufs, fills)]
+    return (*bufs, new_count)
 
 
 def _padded(x, dtype, fill):
@@ -751,7 +805,7 @@ def _plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: int,
     wrows[:n_b] = rows * _BV
     if out_capacity is None:
         out_capacity = _fine_bucket(2 * m.num_leaves + 8 * n_b, minimum=1 << 15)
-    args = (m, jnp.asarray(table), jnp.asarray(R.T, jnp.float32), jnp.asarray(c, jnp.float32),
+    args = (m, _to_device(table, m.log_odds), jnp.asarray(R.T, jnp.float32), jnp.asarray(c, jnp.float32),
             jnp.asarray(K_d, jnp.int32), jnp.asarray(K_s, jnp.int32), jnp.asarray(bkeys),
             jnp.asarray(wbp), jnp.asarray(wrows.reshape(-1)), jnp.int32(n_b),
             jnp.int32(_mode_index(method, space)))
@@ -766,11 +820,11 @@ def _run(plan: _Plan) -> OccupancyMap:
     rows13 = np.flatnonzero(np.asarray(out.depth)[:total] == _BRICK_DEPTH)
     codes = morton.join_codes(np.asarray(out.code)[rows13])
     drop, head, head_depth = _prune_whole_bricks(codes, np.asarray(out.log_odds)[rows13])
-    cap = bucket_capacity(total - drop.size)
     oob = out.capacity  # padding index: dropped by the scatters
-    return _apply_brick_merges(out, _padded(rows13[drop], np.int32, oob),
-                               _padded(rows13[head], np.int32, oob),
-                               _padded(head_depth, np.int32, _D), capacity=cap)
+    code, depth, log_odds, count = _apply_brick_merges(
+        out.code, out.depth, out.log_odds, out.count, _padded(rows13[drop], np.int32, oob),
+        _padded(rows13[head], np.int32, oob), _padded(head_depth, np.int32, _D))
+    return OccupancyMap(code, depth, log_odds, count, out.params, out.resolution, out.tree_depth)
 
 
 def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,

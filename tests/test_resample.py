@@ -383,6 +383,36 @@ def test_padding_invariance():
     assert tree.equal(a, c)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_in_place_brick_merge_compaction(seed):
+    # The final prune drops rows in place, chunk by chunk (each chunk moves left by the drops
+    # before it): equal to a NumPy compaction for drops in several chunks, at chunk edges,
+    # in the first and last valid row, and with padding rows after the valid ones.
+    rng = np.random.default_rng(seed)
+    cap, count, step = 96, 90, 8
+    code = rng.integers(0, 1 << 20, (cap, 2)).astype(np.int32)
+    depth = rng.integers(13, 17, cap).astype(np.int32)
+    lo = rng.normal(size=cap).astype(np.float32)
+    code[count:], depth[count:], lo[count:] = (morton.SENTINEL_HI, 0), 16, 0  # padding rows
+    drop = np.unique(np.concatenate([rng.choice(count, 20, replace=False), [0, 7, 8, count - 1]]))
+    head = np.setdiff1d(rng.choice(count, 6, replace=False), drop)
+    head_depth = rng.integers(5, 13, head.size).astype(np.int32)
+    pad = lambda x, fill: resample._padded(x, np.int32, fill)
+    out = resample._apply_brick_merges(jnp.asarray(code), jnp.asarray(depth), jnp.asarray(lo),
+                                       jnp.int32(count), pad(drop, cap), pad(head, cap),
+                                       pad(head_depth, 16), step=step)
+    ref_depth = depth.copy()
+    ref_depth[head] = head_depth
+    keep = np.setdiff1d(np.arange(count), drop)
+    n = keep.size
+    assert int(out[3]) == n
+    np.testing.assert_array_equal(np.asarray(out[0])[:n], code[keep])
+    np.testing.assert_array_equal(np.asarray(out[1])[:n], ref_depth[keep])
+    np.testing.assert_array_equal(np.asarray(out[2])[:n], lo[keep])
+    assert np.all(np.asarray(out[0])[n:, 0] == morton.SENTINEL_HI)  # padding after the rows
+    assert np.all(np.asarray(out[1])[n:] == 16) and np.all(np.asarray(out[2])[n:] == 0)
+
+
 def test_no_recompilation_within_bucket():
     rng = np.random.default_rng(8)
     m1 = voxels_to_map(multi_depth_voxels(rng))
