@@ -34,7 +34,7 @@ Per-voxel data are kept as separate arrays per axis and per corner and the blend
 formula for every mode, so XLA's CPU loops vectorise (~0.1 us per voxel). Each brick is
 pruned inside itself (levels 16 -> 13) before its leaves are appended to the output; the
 final maximal prune only has to merge whole-brick leaves (few: merged on the host, then the
-output is compacted on the device). Peak memory: the source, its dense brick table (2 KiB per
+output is compacted in place on the device). Peak memory: the source, its dense brick table (2 KiB per
 brick with fine leaves), 27 table rows per destination brick, the brick-pruned output and one
 chunk of work.
 """
@@ -814,8 +814,8 @@ def _plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: int,
 
 def _run(plan: _Plan) -> OccupancyMap:
     """Run the kernel, then prune maximally: leaves finer than a brick are maximal already,
-    so only the whole-brick leaves (few) are merged, on the host, and the result is compacted
-    on the device."""
+    so only the whole-brick leaves (few) are merged, on the host, and the kernel's output is
+    compacted in place on the device."""
     out, total = _run_kernel(plan)
     rows13 = np.flatnonzero(np.asarray(out.depth)[:total] == _BRICK_DEPTH)
     codes = morton.join_codes(np.asarray(out.code)[rows13])
