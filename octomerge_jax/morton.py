@@ -328,7 +328,7 @@ def _bsearch(lo, hi, pred, steps: int):
     return jax.lax.fori_loop(0, steps, body, (lo, hi))[0]
 
 
-_CHUNK = 32  # merge-path chunk: each chunk is merged sequentially, all chunks at once
+_CHUNK = 128  # merge-path chunk: each chunk is merged sequentially, all chunks at once
 
 
 def merge_ranks(ah, al, bh, bl):
