@@ -11,8 +11,8 @@ group) and ``run_manifest`` (a CSV of file pairs, resumable, locally or on a Das
 3. ``transform_map`` per pair (its brick plan is host work; pairs of one bucket share the
    compiled kernel);
 4. fusion: pairs grouped by (map-1 capacity, transformed map-2 capacity) and each group fused
-   by one ``vmap`` of ``fuse`` with a static output capacity; a pair whose refinement
-   overflowed the group capacity is re-fused alone (its result is never truncated).
+   by one ``vmap`` of ``fuse`` with a static output capacity and gap-cell list; a pair whose
+   refinement or gap cells overflowed them is re-fused alone (its result is never truncated).
 
 ``run_manifest`` reads ``map1,map2,output[,x,y,z,roll,pitch,yaw]`` rows (paths relative to the
 manifest), skips pairs whose output exists (resume), writes each output atomically as soon as
@@ -223,7 +223,7 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
         s = state[i]
         key = (s["m1"].resolution, bucket_capacity(s["m1"].num_leaves), bucket_capacity(moved[i].num_leaves))
         fgroups.setdefault(key, []).append(i)
-    from .fuse import fuse
+    from .fuse import default_gap_capacity, fuse
 
     for (res, c1, c2), members in fgroups.items():
         t0 = time.perf_counter()
@@ -231,14 +231,15 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
         A = _stack([state[i]["m1"].with_capacity(c1) for i in members])
         B = _stack([moved[i].with_capacity(c2) for i in members])
         w = tuple(cfg.fuse.weights[:2])
+        gcap = default_gap_capacity(cap)  # more gap cells: overflow, re-fused alone below
         out, rep = jax.vmap(lambda a, b: fuse(a, b, cfg.fuse.rule, weights=w, capacity=cap,
-                                              return_report=True))(A, B)
+                                              gap_capacity=gcap, return_report=True))(A, B)
         jax.block_until_ready(out)
         dt = (time.perf_counter() - t0) / len(members)
         for j, i in enumerate(members):
             s = state[i]
             m_j, r_j = _unstack(out, j), _unstack(rep, j)
-            if bool(r_j.overflow):  # rare: re-fuse alone with a planned capacity
+            if bool(r_j.overflow):  # rare: re-fuse alone with planned capacities
                 m_j, r_j = fuse(s["m1"], moved[i], cfg.fuse.rule, weights=w, return_report=True)
             m_j = _trim(m_j)
             s["timings"]["fuse"] = dt

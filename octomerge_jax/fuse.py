@@ -24,7 +24,10 @@ How, on flat Morton intervals (a leaf at depth ``d`` covers ``[code, code + 8^(1
 3. Cell counts per leaf, one prefix sum in merged order: every leaf scatters its own cell to
    its slot, every non-empty gap its interval to its first slot, and each gap slot finds its
    gap by a cumulative max and computes its cell: the common refinement comes out already
-   sorted. Values are combined per rule, clamped, and pruned maximally in one pass
+   sorted. Gap cells are rare in practice (0-0.1 % of the refinement measured), so on the
+   host they are laid out from a compact list of ``max(capacity / 64, 512)`` rows (re-run
+   with room for all if there are more) instead of per output slot: 1.2-1.6x faster.
+   Values are combined per rule, clamped, and pruned maximally in one pass
    (``tree.prune``: a node collapses iff its interval lies in one run of contiguous,
    equal-valued leaves).
 
@@ -91,7 +94,8 @@ class FuseReport:
       (pair: ``split[0]`` = case 3, M1 coarser; ``split[1]`` = case 4, M2 coarser).
     - ``cells_both``: refined cells known in at least two maps (combined by the rule).
     - ``cells_new``: refined cells unknown in the first map (case 1, eq. 5.14).
-    - ``overflow``: bool, the refinement did not fit ``capacity`` (result truncated).
+    - ``overflow``: bool, the refinement did not fit ``capacity``, or its gap cells did not
+      fit a ``gap_capacity`` given under ``jit`` (result truncated).
     Static: ``capacity``, rows of the output map.
     """
 
@@ -388,15 +392,21 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     )
 
 
-def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth):
+def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth,
+          gap_capacity: int | None = None):
     """Lay out the common refinement (``capacity`` rows, Morton order) as an unpruned map.
 
     ``selfs``: ``(slot, code (n, 2), depth, value)`` cells written as they are; ``gaps``: ``(slot,
     count, s_hi, s_lo, e_hi, e_lo, value)``: the ``count`` cells of ``[s, e)`` from ``slot``
     on. Slots past ``capacity`` are dropped (``total > capacity`` is the overflow). Cells are
     scattered; every slot of a gap finds its gap by a cumulative max over gap start slots and
-    computes its cell in closed form (``_gap_cell``).
+    computes its cell in closed form (``_gap_cell``). With ``gap_capacity`` (static, below
+    ``capacity``) that is done on a compact list of at most ``gap_capacity`` gap cells
+    (``_gap_cells``; more is an overflow the caller reports), not on every slot.
     """
+    if gap_capacity is not None and gap_capacity < capacity:
+        code, depth, val = _gap_cells(capacity, gap_capacity, gaps)
+        return _put_selfs(code, depth, val, selfs, total, capacity, params, resolution, tree_depth)
     cap = capacity
     gap_rows = jnp.zeros((cap, 6), jnp.int32)  # s_hi, s_lo, e_hi, e_lo, value, start slot + 1
     for slot, n, sh, sl, eh, el, v in gaps:
@@ -413,8 +423,12 @@ def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth):
     code = jnp.stack([jnp.where(ok, ch, _SENT), jnp.where(ok, cl, 0)], -1)
     depth = jnp.where(ok, cd, _D)
     val = jnp.where(ok, jax.lax.bitcast_convert_type(g[:, 4], jnp.float32), 0.0)
-    # the leaves' own cells are written over the slots they own (whatever the gap fill put
-    # there): their code and depth are the input arrays, no stacked copy
+    return _put_selfs(code, depth, val, selfs, total, cap, params, resolution, tree_depth)
+
+
+def _put_selfs(code, depth, val, selfs, total, cap, params, resolution, tree_depth):
+    """The leaves' own cells written over the slots they own (whatever the gap fill put
+    there): their code and depth are the input arrays, no stacked copy."""
     for slot, c, d, v in selfs:
         code = code.at[slot].set(c, mode="drop")
         depth = depth.at[slot].set(d, mode="drop")
@@ -423,13 +437,56 @@ def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth):
                         params, resolution, tree_depth)
 
 
+def _gap_cells(capacity: int, gap_capacity: int, gaps):
+    """Gap cells from a compact list: ``(code (capacity, 2), depth, value)`` holding the first
+    ``gap_capacity`` gap cells at their slots and padding elsewhere (the leaves' own cells go
+    on top, ``_put_selfs``).
+
+    Gaps are rare in practice (a leaf split by finer leaves that do not tile it), but the
+    per-slot layout of ``_emit`` costs a row table, a scan and the cell arithmetic on every
+    slot of the output. Here only nonempty gaps are gathered (the ``r``-th one by a binary
+    search in the prefix count of nonempty gaps, concatenated over the gap lists), then each
+    gap cell finds its gap by a cumulative max over a ``gap_capacity``-row list.
+    """
+    cap, gcap = capacity, gap_capacity
+    lens = [g[1].shape[0] for g in gaps]
+    offs = np.cumsum([0] + lens)
+    nonempty = _cumsum(jnp.concatenate([(g[1] > 0).astype(jnp.int32) for g in gaps]))
+    r = jnp.arange(gcap, dtype=jnp.int32)
+    gi = jnp.searchsorted(nonempty, r, side="right", method="scan").astype(jnp.int32)
+    which = sum((gi >= int(o)).astype(jnp.int32) for o in offs[1:-1])
+    fields = []
+    for f in range(7):  # slot, count, s_hi, s_lo, e_hi, e_lo, value of the r-th nonempty gap
+        x = None
+        for j, g in enumerate(gaps):
+            xj = g[f][jnp.clip(gi - int(offs[j]), 0, lens[j] - 1)]
+            x = xj if x is None else jnp.where(which == j, xj, x)
+        fields.append(x)
+    slot, n, sh, sl, eh, el, v = fields
+    n = jnp.where(r < nonempty[-1], n, 0)
+    first = _cumsum(n) - n  # the gap's first cell in the gap-cell list
+    n_cells = first[-1] + n[-1]
+    mark = jnp.zeros((gcap,), jnp.int32).at[jnp.where(n > 0, first, gcap)].set(r + 1, mode="drop")
+    g = jnp.maximum(_cummax(mark) - 1, 0)  # gap of each gap cell
+    t = r - first[g]
+    ch, cl, cd = _gap_cell(sh[g], sl[g], eh[g], el[g], t)
+    dst = jnp.where(r < n_cells, slot[g] + t, cap)
+    code = jnp.stack([jnp.full((cap,), _SENT, jnp.int32), jnp.zeros((cap,), jnp.int32)], -1)
+    code = code.at[dst].set(jnp.stack([ch, cl], -1), mode="drop")
+    depth = jnp.full((cap,), _D, jnp.int32).at[dst].set(cd, mode="drop")
+    val = jnp.zeros((cap,), jnp.float32).at[dst].set(v[g], mode="drop")
+    return code, depth, val
+
+
 def _excl_at(incl, idx):
     """``sum(count[:idx])`` from the inclusive prefix sum ``incl`` (0 for ``idx <= 0``)."""
     return jnp.where(idx > 0, incl[jnp.clip(idx - 1, 0, incl.shape[0] - 1)], 0)
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "do_prune"))
-def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, do_prune: bool):
+@functools.partial(jax.jit, static_argnames=("capacity", "do_prune", "gap_capacity"))
+def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, do_prune: bool,
+               gap_capacity: int | None = None):
+    """The pair kernel: ``(map, FuseReport, gap cells)``; ``gap_capacity``: see ``_emit``."""
     h1, l1, h2, l2 = m1.code[:, 0], m1.code[:, 1], m2.code[:, 0], m2.code[:, 1]
     lt2, le1 = morton.merge_ranks(h1, l1, h2, l2)  # #m2 < m1_i, #m1 <= m2_j
     k = jnp.clip(lt2, 0, m2.capacity - 1)
@@ -449,7 +506,10 @@ def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, 
         selfs.append((jnp.where(s["self_emit"], self_slot, capacity),) + s["self_row"])
         gaps.append((off, s["n_before"]) + s["gap_before"])
         gaps.append((self_slot + s["self_emit"].astype(jnp.int32), s["n_after"]) + s["gap_after"])
-    out = _emit(capacity, total, selfs, gaps, m1.params, m1.resolution, m1.tree_depth)
+    n_gap = sum(jnp.sum(g[1]) for g in gaps).astype(jnp.int32)
+    compact = gap_capacity is not None and gap_capacity < capacity
+    out = _emit(capacity, total, selfs, gaps, m1.params, m1.resolution, m1.tree_depth,
+                gap_capacity if compact else None)
     if do_prune:
         out = tree._prune_runs(out)
     st1, st2 = s1["stats"], s2["stats"]
@@ -461,10 +521,36 @@ def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, 
         split=jnp.stack([st1["split"], st2["split"]]).astype(jnp.int32),
         cells_both=(st1["both"] + st2["both"]).astype(jnp.int32),
         cells_new=(st2["new_self"] + st1["gaps"]).astype(jnp.int32),
-        overflow=total > capacity,
+        overflow=(total > capacity) | ((n_gap > gap_capacity) if compact else False),
         capacity=capacity,
     )
-    return out, report
+    return out, report, n_gap
+
+
+# Host default room for gap cells: capacity / 64, at least 512. Measured: 0-0.1 % of the
+# refinement on the benchmark pairs and on transformed robot maps fused into a map.
+_GAP_SHARE, _GAP_MIN = 64, 512
+
+
+def default_gap_capacity(capacity: int) -> int | None:
+    """The host default ``gap_capacity`` for an output of ``capacity`` rows (``None``: the
+    per-slot layout, when the list would not be smaller)."""
+    room = max(int(capacity) // _GAP_SHARE, _GAP_MIN)
+    return room if room < capacity else None
+
+
+def _pair(m1, m2, w1, w2, mode, cap: int, prune: bool, traced: bool, gap_capacity):
+    """``_fuse_pair`` with the gap list sized: on the host (``gap_capacity=None``) for
+    ``max(cap / 64, 512)`` gap cells, re-run with room for all of them when there are more;
+    under ``jit``/``vmap`` as given (``None``: every slot, never short)."""
+    if gap_capacity is None and not traced:
+        gap_capacity = default_gap_capacity(cap)
+    out, rep, n_gap = _fuse_pair(m1, m2, w1, w2, mode, cap, prune, gap_capacity=gap_capacity)
+    if not traced and gap_capacity is not None and int(n_gap) > gap_capacity:
+        more = bucket_capacity(int(n_gap))
+        out, rep, _ = _fuse_pair(m1, m2, w1, w2, mode, cap, prune,
+                                 gap_capacity=more if more < cap else None)
+    return out, rep
 
 
 # ----------------------------------------------------------------------------- public
@@ -504,7 +590,8 @@ def _finish(run, guess: int, capacity, traced: bool, return_report: bool, what: 
 
 
 def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0, 1.0),
-         capacity: int | None = None, prune: bool = True, return_report: bool = False):
+         capacity: int | None = None, prune: bool = True, return_report: bool = False,
+         gap_capacity: int | None = None):
     """Fuse ``m2`` (already in ``m1``'s frame) into ``m1`` (thesis Alg. 8, §5.2.3 cases 1-4).
 
     Args:
@@ -517,6 +604,11 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
       prune: prune maximally (never into a depth-0 root leaf, as OctoMap). With ``False``
         the clamped common refinement is returned (sorted, disjoint, not pruned).
       return_report: also return a ``FuseReport``.
+      gap_capacity: static room for *gap cells* (parts of a split leaf that the finer map
+        does not know, thesis case 1 inside cases 3 / 4; rare in practice), laid out from a
+        compact list instead of per output slot. ``None``: on the host ``max(capacity / 64,
+        512)``, re-run with room for all when there are more; under ``jit``/``vmap`` every slot (never
+        short). A smaller value under ``jit`` that proves too small sets ``overflow``.
 
     Returns the fused ``OccupancyMap`` (capacity ``capacity``), or ``(map, report)``.
     Raises ``ValueError`` (host) for different resolutions, an unknown rule, or an overflow
@@ -531,7 +623,7 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
     traced = _is_traced(m1.count, m2.count)
 
     def run(cap):
-        return _fuse_pair(m1, m2, w1, w2, mode, cap, bool(prune))
+        return _pair(m1, m2, w1, w2, mode, cap, bool(prune), traced, gap_capacity)
 
     guess = 0 if traced else int(m1.count) + int(m2.count)
     return _finish(run, guess, capacity, traced, return_report, "fuse")
@@ -566,7 +658,7 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
 
     def run(cap):
         if len(maps) == 2:  # the pair kernel is the one-pass refinement of two maps
-            return _fuse_pair(maps[0], maps[1], w[0], w[1], mode, cap, bool(prune))
+            return _pair(maps[0], maps[1], w[0], w[1], mode, cap, bool(prune), traced, None)
         return _fuse_many(tuple(maps), w, mode, cap, bool(prune))
 
     guess = 0 if traced else sum(int(m.count) for m in maps)
