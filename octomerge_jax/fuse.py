@@ -539,17 +539,17 @@ def default_gap_capacity(capacity: int) -> int | None:
     return room if room < capacity else None
 
 
-def _pair(m1, m2, w1, w2, mode, cap: int, prune: bool, traced: bool, gap_capacity):
-    """``_fuse_pair`` with the gap list sized: on the host (``gap_capacity=None``) for
-    ``max(cap / 64, 512)`` gap cells, re-run with room for all of them when there are more;
-    under ``jit``/``vmap`` as given (``None``: every slot, never short)."""
+def _sized_gaps(kernel, cap: int, traced: bool, gap_capacity):
+    """``kernel(cap, gap_capacity) -> (map, report, gap cells)`` with the gap list sized: on
+    the host (``gap_capacity=None``) ``default_gap_capacity``, re-run with room for all gap
+    cells when there are more; under ``jit``/``vmap`` as given (``None``: every slot, never
+    short). Returns ``(map, report)``."""
     if gap_capacity is None and not traced:
         gap_capacity = default_gap_capacity(cap)
-    out, rep, n_gap = _fuse_pair(m1, m2, w1, w2, mode, cap, prune, gap_capacity=gap_capacity)
+    out, rep, n_gap = kernel(cap, gap_capacity)
     if not traced and gap_capacity is not None and int(n_gap) > gap_capacity:
         more = bucket_capacity(int(n_gap))
-        out, rep, _ = _fuse_pair(m1, m2, w1, w2, mode, cap, prune,
-                                 gap_capacity=more if more < cap else None)
+        out, rep, _ = kernel(cap, more if more < cap else None)
     return out, rep
 
 
@@ -622,8 +622,11 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
     mode = jnp.asarray(_MODE[rule], jnp.int32)
     traced = _is_traced(m1.count, m2.count)
 
+    def kernel(cap, gcap):
+        return _fuse_pair(m1, m2, w1, w2, mode, cap, bool(prune), gap_capacity=gcap)
+
     def run(cap):
-        return _pair(m1, m2, w1, w2, mode, cap, bool(prune), traced, gap_capacity)
+        return _sized_gaps(kernel, cap, traced, gap_capacity)
 
     guess = 0 if traced else int(m1.count) + int(m2.count)
     return _finish(run, guess, capacity, traced, return_report, "fuse")
@@ -656,10 +659,13 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
 
     mode = jnp.asarray(_MODE[rule], jnp.int32)
 
-    def run(cap):
+    def kernel(cap, gcap):
         if len(maps) == 2:  # the pair kernel is the one-pass refinement of two maps
-            return _pair(maps[0], maps[1], w[0], w[1], mode, cap, bool(prune), traced, None)
-        return _fuse_many(tuple(maps), w, mode, cap, bool(prune))
+            return _fuse_pair(maps[0], maps[1], w[0], w[1], mode, cap, bool(prune), gap_capacity=gcap)
+        return _fuse_many(tuple(maps), w, mode, cap, bool(prune), gap_capacity=gcap)
+
+    def run(cap):
+        return _sized_gaps(kernel, cap, traced, None)
 
     guess = 0 if traced else sum(int(m.count) for m in maps)
     return _finish(run, guess, capacity, traced, return_report, "fuse_many")
@@ -668,8 +674,11 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
 # ----------------------------------------------------------------------------- m maps
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "do_prune"))
-def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
+@functools.partial(jax.jit, static_argnames=("capacity", "do_prune", "gap_capacity"))
+def _fuse_many(maps, w, mode, capacity: int, do_prune: bool, gap_capacity: int | None = None):
+    """The m-map kernel: ``(map, FuseReport, gap cells)``. With ``gap_capacity`` an interval
+    that is one aligned cell (most) is written as it is and only the others are decomposed,
+    from a compact list (``_emit``)."""
     m0 = maps[0]
     # 1. every map's boundaries (start, end, start, end, ...: already sorted, as its leaves
     #    are disjoint) merged into one sorted list; payload: map id, leaf index (-1: an end).
@@ -726,8 +735,20 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
     n_cells = _materialize(m0.count >= 0, jnp.where(known, _gap_plan(bh, bl, nh, nl), 0))
     ends = _cumsum(n_cells)
     total = ends[-1].astype(jnp.int32)
-    out = _emit(capacity, total, [], [(ends - n_cells, n_cells, bh, bl, nh, nl, jnp.clip(acc, lo_c, hi_c))],
-                p, m0.resolution, m0.tree_depth)
+    value, first = jnp.clip(acc, lo_c, hi_c), ends - n_cells
+    compact = gap_capacity is not None and gap_capacity < capacity
+    if compact:
+        one = n_cells == 1  # the interval [b, n) is one aligned cell: depth from its size
+        dl = nl - bl
+        dh = nh - bh - (dl < 0).astype(jnp.int32)
+        size_bit = tree._top_bit(dh, jnp.where(dl < 0, dl + (1 << morton.WORD_BITS), dl))
+        selfs = [(jnp.where(one, first, capacity), jnp.stack([bh, bl], -1), _D - size_bit // 3, value)]
+        gaps = [(first, jnp.where(one, 0, n_cells), bh, bl, nh, nl, value)]
+    else:
+        selfs, gaps = [], [(first, n_cells, bh, bl, nh, nl, value)]
+    n_gap = jnp.sum(gaps[0][1]).astype(jnp.int32)
+    out = _emit(capacity, total, selfs, gaps, p, m0.resolution, m0.tree_depth,
+                gap_capacity if compact else None)
     if do_prune:
         out = tree._prune_runs(out)
     report = FuseReport(
@@ -738,7 +759,7 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool):
         split=jnp.stack(split).astype(jnp.int32),
         cells_both=jnp.sum(jnp.where(n_known >= 2, n_cells, 0)).astype(jnp.int32),
         cells_new=jnp.sum(jnp.where(~cov0, n_cells, 0)).astype(jnp.int32),
-        overflow=total > capacity,
+        overflow=(total > capacity) | ((n_gap > gap_capacity) if compact else False),
         capacity=capacity,
     )
-    return out, report
+    return out, report, n_gap

@@ -397,8 +397,13 @@ def test_fuse_many_pair_equals_fuse(seed):
     m1, m2 = pair(seed, values=np.float32([-2.0, 3.5, 1.7, -1.0, 0.4]))
     a, ra = F.fuse(m1, m2, return_report=True, capacity=CAP_OUT)
     # fuse_many takes the pair kernel for two maps; the m-map kernel must agree with it
-    b, rb = F._fuse_many((m1, m2), jnp.ones(2, jnp.float32), jnp.int32(0), CAP_OUT, True)
+    b, rb, _ = F._fuse_many((m1, m2), jnp.ones(2, jnp.float32), jnp.int32(0), CAP_OUT, True)
     assert_same_leaves(b, (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
+    # with a compact gap list: one-cell intervals written as they are, the others decomposed
+    c, rc, n_gap = F._fuse_many((m1, m2), jnp.ones(2, jnp.float32), jnp.int32(0), CAP_OUT, True,
+                                gap_capacity=GAP_CAP)
+    assert int(n_gap) <= GAP_CAP and not bool(rc.overflow)
+    assert_same_leaves(c, (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
     assert_same_leaves(F.fuse_many([m1, m2], capacity=CAP_OUT),
                        (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
     ha, hb = ra.host(), rb.host()
