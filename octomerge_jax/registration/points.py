@@ -64,6 +64,8 @@ def occupied_points(occupancy_map, min_log_odds=None, max_points_per_leaf: int |
     counts = np.concatenate([np.full(len(i), c.shape[1]) for i, c in out])
     flat = np.concatenate([c.reshape(-1, 3) for c in blocks])
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    inv = np.argsort(order, kind="stable")
-    idx = np.concatenate([np.arange(starts[j], starts[j] + counts[j]) for j in inv]) if len(inv) else []
-    return flat[np.asarray(idx, np.int64)]
+    inv = np.argsort(order, kind="stable")  # leaf i's block is block inv[i] of ``flat``
+    length = counts[inv]
+    first = np.cumsum(length) - length  # where leaf i's points start in the output
+    idx = np.repeat(starts[inv] - first, length) + np.arange(int(length.sum()))
+    return flat[idx]
