@@ -607,8 +607,8 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
       gap_capacity: static room for *gap cells* (parts of a split leaf that the finer map
         does not know, thesis case 1 inside cases 3 / 4; rare in practice), laid out from a
         compact list instead of per output slot. ``None``: on the host ``max(capacity / 64,
-        512)``, re-run with room for all when there are more; under ``jit``/``vmap`` every slot (never
-        short). A smaller value under ``jit`` that proves too small sets ``overflow``.
+        512)``, re-run with room for all when there are more; under ``jit``/``vmap`` every
+        slot (never short). A value that proves too small under ``jit`` sets ``overflow``.
 
     Returns the fused ``OccupancyMap`` (capacity ``capacity``), or ``(map, report)``.
     Raises ``ValueError`` (host) for different resolutions, an unknown rule, or an overflow

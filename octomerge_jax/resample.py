@@ -34,9 +34,9 @@ Per-voxel data are kept as separate arrays per axis and per corner and the blend
 formula for every mode, so XLA's CPU loops vectorise (~0.1 us per voxel). Each brick is
 pruned inside itself (levels 16 -> 13) before its leaves are appended to the output; the
 final maximal prune only has to merge whole-brick leaves (few: merged on the host, then the
-output is compacted in place on the device). Peak memory: the source, its dense brick table (2 KiB per
-brick with fine leaves), 27 table rows per destination brick, the brick-pruned output and one
-chunk of work.
+output is compacted in place on the device). Peak memory: the source, its dense brick table
+(2 KiB per brick with fine leaves), 27 table rows per destination brick, the brick-pruned output
+and one chunk of work.
 """
 
 from __future__ import annotations
