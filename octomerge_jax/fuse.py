@@ -661,7 +661,8 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
 
     def kernel(cap, gcap):
         if len(maps) == 2:  # the pair kernel is the one-pass refinement of two maps
-            return _fuse_pair(maps[0], maps[1], w[0], w[1], mode, cap, bool(prune), gap_capacity=gcap)
+            return _fuse_pair(maps[0], maps[1], w[0], w[1], mode, cap, bool(prune),
+                              gap_capacity=gcap)
         return _fuse_many(tuple(maps), w, mode, cap, bool(prune), gap_capacity=gcap)
 
     def run(cap):

@@ -431,8 +431,6 @@ def _plan_dest_bricks(src_bkeys: np.ndarray, T_key) -> np.ndarray:
     return keys[order]
 
 
-
-
 # ----------------------------------------------------------------------------- kernel
 
 
@@ -805,9 +803,9 @@ def _plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: int,
     wrows[:n_b] = rows * _BV
     if out_capacity is None:
         out_capacity = _fine_bucket(2 * m.num_leaves + 8 * n_b, minimum=1 << 15)
-    args = (m, _to_device(table, m.log_odds), jnp.asarray(R.T, jnp.float32), jnp.asarray(c, jnp.float32),
-            jnp.asarray(K_d, jnp.int32), jnp.asarray(K_s, jnp.int32), jnp.asarray(bkeys),
-            jnp.asarray(wbp), jnp.asarray(wrows.reshape(-1)), jnp.int32(n_b),
+    args = (m, _to_device(table, m.log_odds), jnp.asarray(R.T, jnp.float32),
+            jnp.asarray(c, jnp.float32), jnp.asarray(K_d, jnp.int32), jnp.asarray(K_s, jnp.int32),
+            jnp.asarray(bkeys), jnp.asarray(wbp), jnp.asarray(wrows.reshape(-1)), jnp.int32(n_b),
             jnp.int32(_mode_index(method, space)))
     return _Plan(args, chunk, int(out_capacity), n_b, n_db)
 
