@@ -179,7 +179,7 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
                 s, sc, t, tc, T, dists, eps, min_inliers=kw["min_inliers"],
                 max_iterations=kw["max_iterations"], cell_capacity=kw["cell_capacity"],
                 table_sizes=neighbors.level_table_sizes(ct, dists),
-                coarse_matching=kw["coarse_matching"]))
+                coarse_matching=kw["coarse_matching"], two_phase=False))
             out = run(jnp.stack(S), jnp.stack(SC), jnp.stack(T_), jnp.stack(TC),
                       jnp.asarray(np.stack(T0), jnp.float32))
             jax.block_until_ready(out)

@@ -79,3 +79,41 @@ def test_centroid_level_matches_voxel_grid_centroids():
     D = ((Q[:, None].astype(np.float64) - C[None]) ** 2).sum(-1)
     np.testing.assert_allclose(np.asarray(d2), D.min(1), rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(np.asarray(match), C[D.argmin(1)], atol=1e-5)
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_two_phase_search_equals_the_27_cell_search(dense):
+    """The 8-cell first phase + 27-cell re-search of the unsettled queries returns exactly what
+    one 27-cell phase returns (same slot, distance and point, ties included) on a voxel lattice
+    (surfaces: many equidistant candidates), with queries near it, far from it, on cell faces,
+    non-finite, and padding rows past ``count``."""
+    res = 0.05
+    rng = np.random.default_rng(7)
+    ij = rng.integers(0, 120, (6000, 2))
+    wall = np.c_[ij[:, 0], np.zeros(6000, int) + 3, ij[:, 1] // 2]
+    floor_ = np.c_[ij[:, 0], ij[:, 1], np.zeros(6000, int)]
+    P = ((np.unique(np.r_[wall, floor_], axis=0) + 0.5) * res).astype(np.float32)
+    if not dense:
+        P = P + np.float32(300.0) * (rng.integers(0, 2, (len(P), 1)) - 0.5).astype(np.float32)
+    n = len(P)
+    h = np.float32(2 * res)
+    g = nb.build_grids(P, n, np.array([h], np.float32), table_sizes=(1 << 17,) if dense else (1 << 15,),
+                       cell_capacity=8)
+    assert bool(g.dense[0]) == dense and int(g.overflow[0]) == 0
+    q = 6 * 2048
+    Q = P[rng.integers(0, n, q)] + rng.normal(0, 0.6 * res, (q, 3)).astype(np.float32)  # near
+    Q[:2048] += rng.uniform(-1.0, 1.0, (2048, 3)).astype(np.float32)  # far from most points
+    Q[2048:2560] = np.round(Q[2048:2560] / h) * h  # on cell faces / corners
+    Q[2560:2600] = P[rng.integers(0, n, 40)]  # exactly on lattice points
+    Q[2600, 1] = np.nan
+    count = q - 3000  # the last block is padding, the one before partly
+    one = nb.nearest_with_points(g, Q, 0, count, two_phase=False)
+    two = jax.jit(lambda Q, c: nb.nearest_with_points(g, Q, 0, c, two_phase=True))(Q, count)
+    for a, b in zip(one, two):
+        np.testing.assert_array_equal(np.asarray(a)[:count], np.asarray(b)[:count])
+    d2, idx = np.asarray(two[0])[:count], np.asarray(two[1])[:count]
+    assert 0.2 < np.mean(d2 > h * h) < 0.6  # both phases were exercised
+    bd, bi = _brute(P, Q[:count])
+    m = bd <= h * h
+    np.testing.assert_allclose(d2[m], bd[m], rtol=1e-5, atol=1e-9)
+    assert idx[2600] == -1

@@ -350,8 +350,10 @@ def _stage_clouds(src, valid, source_count, dists, downsample: bool):
 
 def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final_epsilon,
               min_inliers, max_iterations: int, anderson: int | None = None,
-              coarse_matching: str = "centroid"):
-    """One registration on padded clouds with pre-built stage grids (vmappable over T_init)."""
+              coarse_matching: str = "centroid", two_phase: bool = True):
+    """One registration on padded clouds with pre-built stage grids (vmappable over T_init;
+    pass ``two_phase=False`` under ``vmap``, see ``neighbors.nearest_with_points``)."""
+    nearest = partial(neighbors.nearest_with_points, two_phase=two_phase)
     src_sg = jax.lax.stop_gradient(source)
     n = source.shape[0]
     valid = jnp.arange(n) < source_count
@@ -379,12 +381,12 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
         pts, wt, cnt = queries
         p = rigid.transform_points(T, pts)
         if coarse_matching != "nearest":  # one query; the level is data (no cond: vmap-friendly)
-            return _finish_match(*neighbors.nearest_with_points(grids, p, stage, cnt), stage, wt)
-        d2, idx, match = neighbors.nearest_with_points(grids, p, last_stage, cnt)
+            return _finish_match(*nearest(grids, p, stage, cnt), stage, wt)
+        d2, idx, match = nearest(grids, p, last_stage, cnt)
         fine = (idx >= 0) & (d2 <= d_floor2)
 
         def coarse(_):
-            d2c, idxc, matchc = neighbors.nearest_with_points(grids, p, stage, cnt)
+            d2c, idxc, matchc = nearest(grids, p, stage, cnt)
             return (jnp.where(fine, d2, d2c), jnp.where(fine, idx, idxc),
                     jnp.where(fine[:, None], match, matchc))
 
@@ -537,14 +539,15 @@ def _uncentre_result(r: IcpResult, uncentre) -> IcpResult:
     return dataclasses.replace(r, T_target_source=uncentre(r.T_target_source))
 
 
-@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching"))
+@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching",
+                                   "two_phase"))
 def _icp_padded_jit(source, source_count, target, target_count, T_init, dists, epsilon,
                     final_epsilon, min_inliers, *, max_iterations, cell_capacity, table_sizes,
-                    coarse_matching):
+                    coarse_matching, two_phase):
     source, target, T_init, uncentre = _centered(source, source_count, target, target_count, T_init)
     grids = _build(target, target_count, dists, table_sizes, cell_capacity)
     r = _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final_epsilon,
-                  min_inliers, max_iterations, coarse_matching=coarse_matching)
+                  min_inliers, max_iterations, coarse_matching=coarse_matching, two_phase=two_phase)
     return _uncentre_result(r, uncentre)
 
 
@@ -559,15 +562,17 @@ def _table_sizes(capacity, dists, table_sizes):
 def icp_padded(source, source_count, target, target_count, T_target_source_init, dists,
                epsilon, final_epsilon=None, min_inliers=6, *, max_iterations: int = 100,
                cell_capacity: int = 8, table_sizes: tuple[int, ...] | None = None,
-               coarse_matching: str = "centroid") -> IcpResult:
+               coarse_matching: str = "centroid", two_phase: bool = True) -> IcpResult:
     """ICP on padded clouds, jitted: ``source (Ns, 3)``, ``target (Nt, 3)`` float32 [m] whose
     rows ``>= *_count`` are padding, ``T_target_source_init (4, 4)``, stage distances
     ``dists (s,)`` [m] (``stage_distances``), ``epsilon`` (stage change threshold, sum of
     ``|dT|``), ``final_epsilon`` (threshold at the last stage, default ``epsilon / 100``) and
     ``min_inliers`` are traced; ``max_iterations``, ``cell_capacity`` and ``table_sizes``
-    (default ``neighbors.level_table_sizes(Nt, dists)``, needs concrete ``dists``) and
-    ``coarse_matching`` (see ``icp``) are static. Pure and ``vmap``-able over stacked pairs of
-    one bucket (pass ``table_sizes`` then)."""
+    (default ``neighbors.level_table_sizes(Nt, dists)``, needs concrete ``dists``),
+    ``coarse_matching`` (see ``icp``) and ``two_phase`` (the nearest-neighbour search,
+    ``neighbors.nearest_with_points``) are static. Pure and ``vmap``-able over stacked pairs of
+    one bucket (pass ``table_sizes`` then, and ``two_phase=False``: same results, and under
+    ``vmap`` the one-phase search is the cheaper)."""
     _check_choice(coarse_matching)
     ts = _table_sizes(target.shape[0], dists, table_sizes)
     epsilon = jnp.asarray(epsilon, jnp.float32)
@@ -577,7 +582,7 @@ def icp_padded(source, source_count, target, target_count, T_target_source_init,
                            jnp.asarray(dists, jnp.float32), epsilon, final_epsilon,
                            jnp.asarray(min_inliers, jnp.int32), max_iterations=int(max_iterations),
                            cell_capacity=int(cell_capacity), table_sizes=ts,
-                           coarse_matching=coarse_matching)
+                           coarse_matching=coarse_matching, two_phase=bool(two_phase))
 
 
 def _check_choice(coarse_matching):
@@ -697,7 +702,7 @@ def _icp_multi_padded(source, source_count, target, target_count, hypotheses, di
     source, target, hyps_c, uncentre = _centered(source, source_count, target, target_count, hypotheses)
     grids = _build(target, target_count, dists, table_sizes, cell_capacity)
     run = lambda T: _icp_core(source, source_count, target, grids, T, dists, epsilon, final_epsilon,
-                              min_inliers, max_iterations, coarse_matching=coarse_matching)
+                              min_inliers, max_iterations, coarse_matching=coarse_matching, two_phase=False)
     cands = _uncentre_result(jax.vmap(run)(hyps_c), uncentre)
     # every field batched along k (a constant field comes out of vmap unbatched)
     k = hyps_c.shape[0]

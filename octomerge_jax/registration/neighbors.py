@@ -13,7 +13,10 @@ so building and querying are plain sorts, scatters and gathers under ``jit``/``v
   Hash collisions only add candidates, never wrong answers: distances are always exact.
 - query: 27 gathers of ``K`` candidates per query point and an exact squared distance; the
   result is exact (the true nearest neighbour within ``cell_size``) whenever ``overflow == 0``.
-  Candidates farther than ``cell_size`` may be returned; callers filter by distance.
+  Candidates farther than ``cell_size`` may be returned; callers filter by distance. By default
+  in two phases: the 8 cells nearest to the query first, which hold every point within half a
+  cell of it, and the 27 only for the queries that this does not settle (same answers; near an
+  ICP solution ~1 % of them: 1.3-1.5x faster ICP on the benchmark pairs).
 
 No SciPy/KD-tree: the same code runs for one query set or ``vmap``-ed over many transforms.
 """
@@ -261,34 +264,95 @@ def nearest(grid: HashGrid, queries, level=0):
     return d2, idx
 
 
-def nearest_with_points(grid: HashGrid, queries, level=0, count=None):
-    """As ``nearest``, plus the matched coordinates ``(n, 3)`` (the stored point, or the
-    sub-cell centroid on a centroid level). Queries are processed in blocks of 2048; with
-    ``count`` (traced int), rows ``>= count`` are padding: blocks entirely past it are skipped
-    (their rows get ``inf`` / ``-1`` / zeros)."""
-    level = jnp.asarray(level, jnp.int32)
-    base, mask, h = grid.base[level], grid.mask[level], grid.cell_size[level]
-    origin, dims, dense = grid.origin[level], grid.dims[level], grid.dense[level]
-    q = jnp.asarray(queries, jnp.float32)
+# the 2x2x2 block of cells nearest to a query, in the order of _OFFSETS (x fastest)
+_CORNERS = np.array([(i, j, k) for k in (0, 1) for j in (0, 1) for i in (0, 1)], np.int32)
+
+
+def _near_block(xyz, index, base, mask, origin, dims, dense, h, q):
+    """First phase: the nearest point among the 2 x 2 x 2 cells nearest to each query (8 of the
+    27), and ``sure (b,)``: that point is the 27-cell answer. The block holds every point
+    within ``g = h (1 - max_a min(f_a, 1 - f_a))`` (>= h / 2) of the query, ``f`` its
+    position in its cell; so a point found nearer than ``g`` is the nearest of all, and the
+    27-cell search picks the same slot (ties resolve in the same order)."""
+    finite = jnp.all(jnp.isfinite(q), axis=-1)
+    q = jnp.where(finite[..., None], q, _FAR)
+    s = q / h
+    c = jnp.floor(s)
+    f = s - c
+    lo = c.astype(jnp.int32) - (f < 0.5).astype(jnp.int32)
+    rows = base + _bucket(lo[:, None, :] + jnp.asarray(_CORNERS)[None], mask, origin, dims, dense)  # (b, 8)
+    d2 = 0.0
+    for a in range(3):
+        pa = xyz[a].at[rows].get(mode="promise_in_bounds")  # (b, 8, K)
+        d2 = d2 + (pa - q[:, None, None, a]) ** 2
+    b, k = q.shape[0], xyz.shape[-1]
+    d2 = d2.reshape(b, 8 * k)
+    best = jnp.min(d2, axis=-1)
+    j = jnp.argmax(d2 == best[:, None], axis=-1)
+    row = jnp.take_along_axis(rows, (j // k)[:, None], axis=-1)[:, 0]
+    idx = index[row, j % k]
+    found = (idx >= 0) & finite
+    match = jnp.stack([xyz[a][row, j % k] for a in range(3)], -1)
+    # float32 cells: the cell of a point may be off by rounding of p / h (relative 2^-24)
+    slack = (jnp.max(jnp.abs(s), axis=-1) + 2.0) * 2.5e-7
+    g = h * (1.0 - jnp.max(jnp.minimum(f, 1.0 - f), axis=-1) - slack)
+    sure = (found & (best < g * g)) | ~finite
+    return jnp.where(found, best, jnp.inf), jnp.where(found, idx, -1), match, sure
+
+
+def _blocked(f, q, count, outs):
+    """Apply the block kernel ``f`` to ``q (n, 3)`` in blocks of ``_CHUNK`` rows, skipping
+    blocks entirely past ``count`` (their rows get ``outs``' fill values)."""
     n = q.shape[0]
-    f = lambda qb: _nearest_block(grid.xyz, grid.index, base, mask, origin, dims, dense, h, qb)
     if n <= _CHUNK or n % _CHUNK:
         return f(q)
     blocks = q.reshape(n // _CHUNK, _CHUNK, 3)
     if count is None:
-        d2, idx, match = jax.lax.map(f, blocks)
+        out = jax.lax.map(f, blocks)
     else:
         def padding(_):
-            return (jnp.full((_CHUNK,), jnp.inf, jnp.float32), jnp.full((_CHUNK,), -1, jnp.int32),
-                    jnp.zeros((_CHUNK, 3), jnp.float32))
+            return tuple(jnp.full((_CHUNK,) + shape, v, dt) for v, shape, dt in outs)
 
         def g(args):
             qb, start = args
             return jax.lax.cond(start < count, lambda _: f(qb), padding, None)
 
         starts = jnp.arange(n // _CHUNK, dtype=jnp.int32) * _CHUNK
-        d2, idx, match = jax.lax.map(g, (blocks, starts))
-    return d2.reshape(n), idx.reshape(n), match.reshape(n, 3)
+        out = jax.lax.map(g, (blocks, starts))
+    return tuple(x.reshape((n,) + x.shape[2:]) for x in out)
+
+
+_FILL = ((jnp.inf, (), jnp.float32), (-1, (), jnp.int32), (0.0, (3,), jnp.float32))
+
+
+def nearest_with_points(grid: HashGrid, queries, level=0, count=None, two_phase: bool = True):
+    """As ``nearest``, plus the matched coordinates ``(n, 3)`` (the stored point, or the
+    sub-cell centroid on a centroid level). Queries are processed in blocks of 2048; with
+    ``count`` (traced int), rows ``>= count`` are padding: blocks entirely past it are skipped
+    (their rows get ``inf`` / ``-1`` / zeros).
+
+    ``two_phase`` (static; used when ``n`` is a multiple of 2048 above it): search the 8 cells
+    nearest to each query first and the 27 cells only for the queries whose answer that does
+    not settle (compacted, ~1 % of them near an ICP solution, all of them far from the target).
+    Same answers as one phase, ~3x cheaper when most queries lie near the target. Under
+    ``vmap`` the skipped blocks are computed anyway (``cond`` becomes ``select``): pass
+    ``False`` there."""
+    level = jnp.asarray(level, jnp.int32)
+    base, mask, h = grid.base[level], grid.mask[level], grid.cell_size[level]
+    origin, dims, dense = grid.origin[level], grid.dims[level], grid.dense[level]
+    q = jnp.asarray(queries, jnp.float32)
+    n = q.shape[0]
+    full = lambda qb: _nearest_block(grid.xyz, grid.index, base, mask, origin, dims, dense, h, qb)  # noqa: E731
+    if not two_phase or n <= _CHUNK or n % _CHUNK:
+        return _blocked(full, q, count, _FILL)
+    near = lambda qb: _near_block(grid.xyz, grid.index, base, mask, origin, dims, dense, h, qb)  # noqa: E731
+    d2, idx, match, sure = _blocked(near, q, count, _FILL + ((True, (), jnp.bool_),))
+    redo = ~sure if count is None else ~sure & (jnp.arange(n) < count)
+    n_redo = jnp.sum(redo).astype(jnp.int32)
+    rows = jnp.nonzero(redo, size=n, fill_value=n)[0]
+    d2r, idxr, matchr = _blocked(full, q.at[rows].get(mode="fill", fill_value=_FAR), n_redo, _FILL)
+    put = lambda a, v: a.at[rows].set(v, mode="drop")  # noqa: E731
+    return put(d2, d2r), put(idx, idxr), put(match, matchr)
 
 
 @jax.jit
