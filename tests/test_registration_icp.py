@@ -150,6 +150,24 @@ def test_icp_multi_candidates_are_batched_also_when_swapped():
         assert bool(third.swapped) == swapped and bool(r.best.swapped) == swapped
 
 
+def test_icp_multi_sequential_equals_batched_on_converged_candidates():
+    """Hypotheses run one after another (``lax.map``, the CPU default) or as one ``vmap``
+    batch: the same candidates wherever they converged, the same best."""
+    rng = np.random.default_rng(11)
+    tgt = rng.uniform(-2.0, 2.0, (600, 3)).astype(np.float32)
+    T = xyz_rpy64(0.05, -0.03, 0.0, 0.0, 0.0, 0.1)
+    src = _moved(tgt[:400], np.linalg.inv(T))
+    hyps = np.stack([xyz_rpy64(0, 0, 0, 0, 0, y) @ T for y in (0.0, 0.05, -0.08, 0.3)])
+    a = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True)
+    b = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=False)
+    conv = np.asarray(a.candidates.converged) & np.asarray(b.candidates.converged)
+    assert conv[:3].all()
+    np.testing.assert_allclose(np.asarray(a.candidates.T_target_source)[conv],
+                               np.asarray(b.candidates.T_target_source)[conv], atol=1e-4)
+    assert int(a.best_index) == int(b.best_index)
+    assert _errors(a.best.T_target_source, T)[0] < 1e-3
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("yaw_error", [0.5, 1.7])
 def test_icp_multi_reaches_the_truth_from_large_yaw_errors(yaw_error):

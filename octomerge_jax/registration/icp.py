@@ -695,15 +695,25 @@ def default_hypotheses(T_target_source_init, center, yaw_step_rad: float = np.pi
     return C @ D @ rigid.inverse(C) @ T0
 
 
-@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching"))
+def _sequential_default() -> bool:
+    """Host: run hypotheses one after another on CPU backends, batched elsewhere."""
+    return jax.default_backend() == "cpu"
+
+
+@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching",
+                                   "sequential"))
 def _icp_multi_padded(source, source_count, target, target_count, hypotheses, dists, epsilon,
                       final_epsilon, min_inliers, *, max_iterations: int, cell_capacity: int,
-                      table_sizes: tuple[int, ...], coarse_matching: str):
+                      table_sizes: tuple[int, ...], coarse_matching: str, sequential: bool = False):
     source, target, hyps_c, uncentre = _centered(source, source_count, target, target_count, hypotheses)
     grids = _build(target, target_count, dists, table_sizes, cell_capacity)
-    run = lambda T: _icp_core(source, source_count, target, grids, T, dists, epsilon, final_epsilon,
-                              min_inliers, max_iterations, coarse_matching=coarse_matching, two_phase=False)
-    cands = _uncentre_result(jax.vmap(run)(hyps_c), uncentre)
+    run = lambda T: _icp_core(source, source_count, target, grids, T, dists, epsilon, final_epsilon,  # noqa: E731
+                              min_inliers, max_iterations, coarse_matching=coarse_matching,
+                              two_phase=sequential)
+    # sequential (lax.map): each hypothesis stops at its own convergence and skips work per
+    # block; vmap runs every hypothesis until the slowest stops and computes both sides of every
+    # data-dependent branch - on a GPU the batch runs in parallel, on a CPU it does not
+    cands = _uncentre_result(jax.lax.map(run, hyps_c) if sequential else jax.vmap(run)(hyps_c), uncentre)
     # every field batched along k (a constant field comes out of vmap unbatched)
     k = hyps_c.shape[0]
     cands = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k,)) if a.ndim == 0 else a, cands)
@@ -720,7 +730,7 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
               transformation_epsilon: float | None = None, max_iterations: int = 100,
               cell_capacity: int = 8, min_inliers: int = 6, swap_larger: bool = True,
               coarse_matching: str = "centroid", source_count=None,
-              target_count=None) -> IcpMultiResult:
+              target_count=None, sequential: bool | None = None) -> IcpMultiResult:
     """Multi-hypothesis ICP: ``vmap`` of ``icp`` over initial guesses sharing one set of
     target grids; returns the best by the number of source points within a quarter of the floor
     distance, ties broken by inlier rmse (``score = num_close - rmse / d_floor``), plus every
@@ -729,6 +739,12 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
     ``hypotheses``: ``(k, 4, 4)`` absolute initial guesses ``T_target_source``; by default
     ``default_hypotheses(T_target_source_init, centroid of T_init * source, yaw_step_rad,
     roll_pitch_offset_rad)`` (12 yaws + 4 roll/pitch offsets = 16). Other arguments as ``icp``.
+
+    ``sequential``: run the hypotheses one after another (``lax.map``) instead of as one
+    ``vmap`` batch; default: sequential on CPU backends (3x faster there: 12 hypotheses at
+    0.2 m, 10.7 -> 3.5 s, as each stops at its own convergence), batched on accelerators.
+    The two agree to float rounding on converged candidates (batched float arithmetic
+    differs in the last bits, which can send a non-converging candidate elsewhere).
     """
     _check_choice(coarse_matching)
     dists, eps = _options(resolution, max_correspondence_distance, min_correspondence_distance,
@@ -754,7 +770,8 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
     out = _icp_multi_padded(s, sc, t, tc, hyps, dists, eps, eps * 0.01, jnp.asarray(min_inliers, jnp.int32),
                             max_iterations=int(max_iterations), cell_capacity=int(cell_capacity),
                             table_sizes=neighbors.level_table_sizes(t.shape[0], np.asarray(dists)),
-                            coarse_matching=coarse_matching)
+                            coarse_matching=coarse_matching,
+                            sequential=_sequential_default() if sequential is None else bool(sequential))
     if swap:
         out = IcpMultiResult(_invert_result(out.best), _invert_result(out.candidates), out.best_index,
                              out.scores, rigid.inverse(out.hypotheses))
