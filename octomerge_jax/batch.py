@@ -6,8 +6,9 @@ group) and ``run_manifest`` (a CSV of file pairs, resumable, locally or on a Das
 1. per pair: resolution/guess checks, occupied clouds and overlap (host, cheap); a pair that
    fails gets ``status="error"`` and a message, the others go on;
 2. ICP (``refine="icp"``): pairs grouped by (resolution, source bucket, target bucket) and each
-   group registered by **one** jitted ``vmap`` of ``registration.icp_padded`` (all pairs of a
-   group share the compiled function and run as one XLA call);
+   group registered by **one** jitted call of ``registration.icp_padded_stack`` (all pairs of
+   a group share the compiled function and run as one XLA call: pair after pair on CPUs,
+   where each then stops at its own convergence, one ``vmap`` batch on accelerators);
 3. ``transform_map`` per pair (its brick plan is host work; pairs of one bucket share the
    compiled kernel);
 4. fusion: pairs grouped by (map-1 capacity, transformed map-2 capacity) and each group fused
@@ -175,13 +176,12 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
                 T_init = state[i]["T_init"]
                 S.append(s_p), SC.append(s_c), T_.append(t_p), TC.append(t_c)
                 T0.append(np.linalg.inv(T_init) if swap else T_init)
-            run = jax.vmap(lambda s, sc, t, tc, T: icp_mod.icp_padded(
-                s, sc, t, tc, T, dists, eps, min_inliers=kw["min_inliers"],
-                max_iterations=kw["max_iterations"], cell_capacity=kw["cell_capacity"],
-                table_sizes=neighbors.level_table_sizes(ct, dists),
-                coarse_matching=kw["coarse_matching"], two_phase=False))
-            out = run(jnp.stack(S), jnp.stack(SC), jnp.stack(T_), jnp.stack(TC),
-                      jnp.asarray(np.stack(T0), jnp.float32))
+            out = icp_mod.icp_padded_stack(
+                jnp.stack(S), jnp.stack(SC), jnp.stack(T_), jnp.stack(TC), jnp.asarray(np.stack(T0), jnp.float32),
+                jnp.asarray(dists, jnp.float32), jnp.float32(eps), jnp.float32(eps * 0.01),
+                jnp.int32(kw["min_inliers"]), max_iterations=int(kw["max_iterations"]),
+                cell_capacity=int(kw["cell_capacity"]), table_sizes=neighbors.level_table_sizes(ct, dists),
+                coarse_matching=kw["coarse_matching"], sequential=icp_mod._sequential_default())
             jax.block_until_ready(out)
             dt = (time.perf_counter() - t0) / len(members)
             for j, (i, swap, _, _) in enumerate(members):

@@ -106,6 +106,7 @@ __all__ = [
     "STATUS_TOO_FEW_INLIERS",
     "icp",
     "icp_padded",
+    "icp_padded_stack",
     "icp_multi",
     "default_hypotheses",
     "stage_distances",
@@ -583,6 +584,28 @@ def icp_padded(source, source_count, target, target_count, T_target_source_init,
                            jnp.asarray(min_inliers, jnp.int32), max_iterations=int(max_iterations),
                            cell_capacity=int(cell_capacity), table_sizes=ts,
                            coarse_matching=coarse_matching, two_phase=bool(two_phase))
+
+
+@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching",
+                                   "sequential"))
+def icp_padded_stack(sources, source_counts, targets, target_counts, T_inits, dists, epsilon,
+                     final_epsilon, min_inliers, *, max_iterations: int, cell_capacity: int,
+                     table_sizes: tuple[int, ...], coarse_matching: str, sequential: bool):
+    """``icp_padded`` over stacked pairs of one bucket (leading axis ``p`` on the clouds,
+    counts and ``T_inits``; the rest shared), as one ``IcpResult`` with leading axis ``p``:
+    pair after pair (``lax.map``, ``sequential=True``: each stops at its own convergence,
+    the faster on CPUs) or as one ``vmap`` batch (accelerators)."""
+    def one(s, sc, t, tc, T):
+        source, target, T_c, uncentre = _centered(s, sc, t, tc, T)
+        grids = _build(target, tc, dists, table_sizes, cell_capacity)
+        r = _icp_core(source, sc, target, grids, T_c, dists, epsilon, final_epsilon, min_inliers,
+                      max_iterations, coarse_matching=coarse_matching, two_phase=sequential)
+        return _uncentre_result(r, uncentre)
+
+    xs = (sources, source_counts, targets, target_counts, T_inits)
+    if sequential:
+        return jax.lax.map(lambda a: one(*a), xs)
+    return jax.vmap(one)(*xs)
 
 
 def _check_choice(coarse_matching):
