@@ -2,7 +2,8 @@
 
 **Algorithm.** Each iteration matches every valid source point to its nearest target point within
 the current correspondence distance ``d`` (a hashed-grid search, ``neighbors.py``: cell = ``d``,
-27 cells, ``cell_capacity`` slots) and solves eq. 3.18 in closed form (weighted Kabsch/Umeyama
+27 cells, ``cell_capacity`` slots; searched in two phases, the 8 nearest cells first, outside
+``vmap``) and solves eq. 3.18 in closed form (weighted Kabsch/Umeyama
 on the inliers, SVD of the 3x3 cross-covariance, reflection-corrected). The transform is always
 re-solved from the *original* source points (``T_k = argmin S(R, t)`` of eq. 3.18), so eq. 3.20's
 product of increments is implicit and no drift accumulates in float32.
@@ -754,8 +755,8 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
               cell_capacity: int = 8, min_inliers: int = 6, swap_larger: bool = True,
               coarse_matching: str = "centroid", source_count=None,
               target_count=None, sequential: bool | None = None) -> IcpMultiResult:
-    """Multi-hypothesis ICP: ``vmap`` of ``icp`` over initial guesses sharing one set of
-    target grids; returns the best by the number of source points within a quarter of the floor
+    """Multi-hypothesis ICP: ``icp`` from many initial guesses sharing one set of target
+    grids, in one jitted call (see ``sequential``); returns the best by the number of source points within a quarter of the floor
     distance, ties broken by inlier rmse (``score = num_close - rmse / d_floor``), plus every
     candidate.
 
