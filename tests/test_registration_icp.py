@@ -97,6 +97,17 @@ def test_vmap_over_pairs_matches_single_runs_and_does_not_recompile(scene):
         assert rot < 1e-4 and tr < 1e-4
     # the second single call (other data, same bucket) reused the first compilation
     assert icp_mod._icp_padded_jit._cache_size() == compiled
+    # the stacked entry point merge_batch uses: pair after pair (CPU default) or one vmap batch
+    d, eps = jnp.asarray(dists), jnp.float32(RES / 60)
+    for sequential in (True, False):
+        st = icp_mod.icp_padded_stack(jnp.stack(S), jnp.stack(SC), jnp.stack(Tg), jnp.stack(TC),
+                                      jnp.stack([jnp.eye(4)] * 2), d, eps, eps * 0.01, jnp.int32(6),
+                                      max_iterations=100, cell_capacity=8,
+                                      table_sizes=icp_mod.neighbors.level_table_sizes(cap_t, dists),
+                                      coarse_matching="centroid", sequential=sequential)
+        assert st.T_target_source.shape == (2, 4, 4) and st.num_iterations.shape == (2,)
+        np.testing.assert_allclose(np.asarray(st.T_target_source), np.asarray(batched.T_target_source),
+                                   atol=1e-5)
 
 
 def test_gradients_match_central_finite_differences(scene):
