@@ -756,9 +756,9 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
               coarse_matching: str = "centroid", source_count=None,
               target_count=None, sequential: bool | None = None) -> IcpMultiResult:
     """Multi-hypothesis ICP: ``icp`` from many initial guesses sharing one set of target
-    grids, in one jitted call (see ``sequential``); returns the best by the number of source points within a quarter of the floor
-    distance, ties broken by inlier rmse (``score = num_close - rmse / d_floor``), plus every
-    candidate.
+    grids, in one jitted call (see ``sequential``); returns the best by the number of source
+    points within a quarter of the floor distance, ties broken by inlier rmse
+    (``score = num_close - rmse / d_floor``), plus every candidate.
 
     ``hypotheses``: ``(k, 4, 4)`` absolute initial guesses ``T_target_source``; by default
     ``default_hypotheses(T_target_source_init, centroid of T_init * source, yaw_step_rad,
