@@ -141,9 +141,11 @@ def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, 
         # cell/2, as PCL's VoxelGrid in the thesis code); a cell has at most 8 of them
         cell_id = _hash(cells, jnp.int32(0x7FFFFFFF))  # separates colliding cells of a bucket
         octant = (sub[:, 0] & 1) | ((sub[:, 1] & 1) << 1) | ((sub[:, 2] & 1) << 2)
-        sb, sc, so, order = jax.lax.sort((bucket, cell_id, octant, rows), num_keys=3)
-        seg_start = jnp.concatenate([jnp.ones((1,), bool),
-                                     (sb[1:] != sb[:-1]) | (sc[1:] != sc[:-1]) | (so[1:] != so[:-1])])
+        # one key for (bucket, octant) (tables stay below 2^28 buckets): a sort with fewer
+        # keys is ~1.4x faster on XLA:CPU
+        sbo, sc, order = jax.lax.sort((bucket * 8 + octant, cell_id, rows), num_keys=2)
+        sb = jnp.right_shift(sbo, 3)
+        seg_start = jnp.concatenate([jnp.ones((1,), bool), (sbo[1:] != sbo[:-1]) | (sc[1:] != sc[:-1])])
         seg = jnp.cumsum(seg_start.astype(jnp.int32)) - 1
         sums = jax.ops.segment_sum(safe[order], seg, num_segments=n)
         cnt = jax.ops.segment_sum(jnp.ones((n,), jnp.float32), seg, num_segments=n)
@@ -187,8 +189,8 @@ def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 
     """
     table_sizes = tuple(int(t) for t in np.atleast_1d(table_sizes))
     for t in table_sizes:
-        if t < 1 or t & (t - 1):
-            raise ValueError(f"table sizes must be powers of two, got {table_sizes}")
+        if t < 1 or t & (t - 1) or t > 1 << 27:
+            raise ValueError(f"table sizes must be powers of two up to 2^27, got {table_sizes}")
     sizes = jnp.atleast_1d(jnp.asarray(cell_sizes, jnp.float32))
     if sizes.shape[0] != len(table_sizes):
         raise ValueError(f"{sizes.shape[0]} cell sizes but {len(table_sizes)} table sizes")
