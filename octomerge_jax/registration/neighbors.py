@@ -233,17 +233,16 @@ def build_grid(points, count, cell_size, *, table_size: int, cell_capacity: int 
 _CHUNK = 2048
 
 
-def _nearest_block(xyz, index, base, mask, origin, dims, dense, h, q):
-    finite = jnp.all(jnp.isfinite(q), axis=-1)
-    q = jnp.where(finite[..., None], q, _FAR)
-    c = _cells(q, h)
-    rows = base + _bucket(c[:, None, :] + jnp.asarray(_OFFSETS)[None], mask, origin, dims, dense)  # (b, 27)
+def _nearest_in_rows(xyz, index, rows, q, finite):
+    """The nearest stored point to each query ``q (b, 3)`` among the table rows ``rows (b, r)``
+    (all ``K`` slots of each): ``(dist2, index, match)``, ``inf`` / ``-1`` when none (or the
+    query is not ``finite``). Ties go to the first slot in ``rows`` order."""
     d2 = 0.0
     for a in range(3):
-        pa = xyz[a].at[rows].get(mode="promise_in_bounds")  # (b, 27, K)
+        pa = xyz[a].at[rows].get(mode="promise_in_bounds")  # (b, r, K)
         d2 = d2 + (pa - q[:, None, None, a]) ** 2
     b, k = q.shape[0], xyz.shape[-1]
-    d2 = d2.reshape(b, 27 * k)
+    d2 = d2.reshape(b, rows.shape[1] * k)
     # min, then the first slot attaining it (= argmin; XLA's CPU argmin reduction is ~2x slower)
     best = jnp.min(d2, axis=-1)
     j = jnp.argmax(d2 == best[:, None], axis=-1)
@@ -252,6 +251,14 @@ def _nearest_block(xyz, index, base, mask, origin, dims, dense, h, q):
     found = (idx >= 0) & finite
     match = jnp.stack([xyz[a][row, j % k] for a in range(3)], -1)
     return jnp.where(found, best, jnp.inf), jnp.where(found, idx, -1), match
+
+
+def _nearest_block(xyz, index, base, mask, origin, dims, dense, h, q):
+    finite = jnp.all(jnp.isfinite(q), axis=-1)
+    q = jnp.where(finite[..., None], q, _FAR)
+    c = _cells(q, h)
+    rows = base + _bucket(c[:, None, :] + jnp.asarray(_OFFSETS)[None], mask, origin, dims, dense)  # (b, 27)
+    return _nearest_in_rows(xyz, index, rows, q, finite)
 
 
 @jax.jit
@@ -283,23 +290,12 @@ def _near_block(xyz, index, base, mask, origin, dims, dense, h, q):
     f = s - c
     lo = c.astype(jnp.int32) - (f < 0.5).astype(jnp.int32)
     rows = base + _bucket(lo[:, None, :] + jnp.asarray(_CORNERS)[None], mask, origin, dims, dense)  # (b, 8)
-    d2 = 0.0
-    for a in range(3):
-        pa = xyz[a].at[rows].get(mode="promise_in_bounds")  # (b, 8, K)
-        d2 = d2 + (pa - q[:, None, None, a]) ** 2
-    b, k = q.shape[0], xyz.shape[-1]
-    d2 = d2.reshape(b, 8 * k)
-    best = jnp.min(d2, axis=-1)
-    j = jnp.argmax(d2 == best[:, None], axis=-1)
-    row = jnp.take_along_axis(rows, (j // k)[:, None], axis=-1)[:, 0]
-    idx = index[row, j % k]
-    found = (idx >= 0) & finite
-    match = jnp.stack([xyz[a][row, j % k] for a in range(3)], -1)
+    d2, idx, match = _nearest_in_rows(xyz, index, rows, q, finite)
     # float32 cells: the cell of a point may be off by rounding of p / h (relative 2^-24)
     slack = (jnp.max(jnp.abs(s), axis=-1) + 2.0) * 2.5e-7
     g = h * (1.0 - jnp.max(jnp.minimum(f, 1.0 - f), axis=-1) - slack)
-    sure = (found & (best < g * g)) | ~finite
-    return jnp.where(found, best, jnp.inf), jnp.where(found, idx, -1), match, sure
+    sure = (d2 < g * g) | ~finite  # d2 = inf when nothing was found
+    return d2, idx, match, sure
 
 
 def _blocked(f, q, count, outs):
