@@ -597,11 +597,10 @@ def icp_padded_stack(sources, source_counts, targets, target_counts, T_inits, di
     pair after pair (``lax.map``, ``sequential=True``: each stops at its own convergence,
     the faster on CPUs) or as one ``vmap`` batch (accelerators)."""
     def one(s, sc, t, tc, T):
-        source, target, T_c, uncentre = _centered(s, sc, t, tc, T)
-        grids = _build(target, tc, dists, table_sizes, cell_capacity)
-        r = _icp_core(source, sc, target, grids, T_c, dists, epsilon, final_epsilon, min_inliers,
-                      max_iterations, coarse_matching=coarse_matching, two_phase=sequential)
-        return _uncentre_result(r, uncentre)
+        return _icp_padded_jit(s, sc, t, tc, T, dists, epsilon, final_epsilon, min_inliers,
+                               max_iterations=max_iterations, cell_capacity=cell_capacity,
+                               table_sizes=table_sizes, coarse_matching=coarse_matching,
+                               two_phase=sequential)
 
     xs = (sources, source_counts, targets, target_counts, T_inits)
     if sequential:
