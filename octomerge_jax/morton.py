@@ -331,15 +331,15 @@ def _bsearch(lo, hi, pred, steps: int):
 _CHUNK = 128  # merge-path chunk: each chunk is merged sequentially, all chunks at once
 
 
-def merge_ranks(ah, al, bh, bl):
-    """Merge two sorted code lists ``a (Ca,)``, ``b (Cb,)`` (word columns; ties: ``a`` first):
-    returns ``(#b < a_i, #a <= b_j)``, each element's rank in the other list.
+def _merge_scan(ah, al, bh, bl):
+    """Merge path of two sorted code lists ``a (Ca,)``, ``b (Cb,)`` (word columns; ties:
+    ``a`` first): ``(key, rank)``, ``(_CHUNK, chunks)`` each: at step ``t`` chunk ``c`` takes
+    merged element ``c * _CHUNK + t``, ``key`` = its index in ``a``, or ``~index`` in ``b``
+    (``~Cb``: none, past the end), ``rank`` = its rank in the other list.
 
-    Merge path, no sort: the merged sequence is cut into chunks of ``_CHUNK``; where each cut
-    falls in ``a`` and ``b`` is one binary search per cut (few). Then all chunks are merged
-    at once, one element per chunk and step (``_CHUNK`` steps of ``(Ca + Cb) / _CHUNK``
-    lanes): the element taken records its rank in the other list, and one scatter per list
-    puts the ranks in place. ``O(Ca + Cb)`` work, no binary search per element.
+    The merged sequence is cut into chunks of ``_CHUNK``; where each cut falls in ``a`` and
+    ``b`` is one binary search per cut (few). Then all chunks are merged at once, one
+    element per chunk and step. ``O(Ca + Cb)`` work, no binary search per element.
     """
     ca, cb = ah.shape[0], bh.shape[0]
     n = ca + cb
@@ -359,12 +359,21 @@ def merge_ranks(ah, al, bh, bl):
         ai, bj = a[jnp.minimum(i, ca - 1)], b[jnp.minimum(j, cb - 1)]
         take_a = (i < x[1:]) & ((j >= y[1:]) | ~_less(bj[:, 0], bj[:, 1], ai[:, 0], ai[:, 1]))
         take_b = ~take_a & (j < y[1:])
-        # a taken: rank[a_i] = j (as ~~i); b taken: rank[b_j] = i (as ~j); none: dropped (~cb)
         key = jnp.where(take_a, i, ~jnp.where(take_b, j, cb))
         return (i + take_a.astype(jnp.int32), j + take_b.astype(jnp.int32)), (key, jnp.where(take_a, j, i))
 
     _, (key, rank) = jax.lax.scan(step, (x[:-1], y[:-1]), None, length=_CHUNK)
-    key, rank = key.reshape(-1), rank.reshape(-1)
+    return key, rank
+
+
+def merge_ranks(ah, al, bh, bl):
+    """Merge two sorted code lists ``a (Ca,)``, ``b (Cb,)`` (word columns; ties: ``a`` first):
+    returns ``(#b < a_i, #a <= b_j)``, each element's rank in the other list.
+
+    Merge path, no sort (``_merge_scan``); one scatter per list puts the ranks in place.
+    """
+    ca, cb = ah.shape[0], bh.shape[0]
+    key, rank = (x.reshape(-1) for x in _merge_scan(ah, al, bh, bl))
     lt_a = jnp.zeros((ca,), jnp.int32).at[jnp.where(key >= 0, key, ca)].set(rank, mode="drop")
     le_b = jnp.zeros((cb,), jnp.int32).at[jnp.where(key < 0, ~key, cb)].set(rank, mode="drop")
     return lt_a, le_b
@@ -372,13 +381,13 @@ def merge_ranks(ah, al, bh, bl):
 
 def merge_sorted(a, b):
     """Stable merge of two sorted record lists ``(hi, lo, *payload)`` (tuples of ``(n,)``
-    int32 arrays, duplicates allowed, padding sorted last); ties keep ``a`` first. Each
-    record's output position is its own index plus its rank in the other list
-    (``merge_ranks``): no sort. Returns a tuple of ``(Ca + Cb,)`` arrays."""
+    int32 arrays, duplicates allowed, padding sorted last); ties keep ``a`` first. The merge
+    path (``_merge_scan``) yields each merged position's source record, so every column is
+    one gather from ``a`` or ``b``: no sort, no scatter. Returns a tuple of ``(Ca + Cb,)``
+    arrays."""
     ca, cb = a[0].shape[0], b[0].shape[0]
-    lt, le = merge_ranks(a[0], a[1], b[0], b[1])
-    pa = jnp.arange(ca, dtype=jnp.int32) + lt
-    pb = jnp.arange(cb, dtype=jnp.int32) + le
-    # column by column (1-D scatters; a stacked row table is a slow concatenate on the CPU)
-    return tuple(jnp.zeros((ca + cb,), jnp.int32).at[pa].set(x, unique_indices=True)
-                 .at[pb].set(y, unique_indices=True) for x, y in zip(a, b))
+    key, _ = _merge_scan(a[0], a[1], b[0], b[1])
+    src = key.T.reshape(-1)[:ca + cb]  # chunk-major: merged order
+    from_a = src >= 0
+    ia, ib = jnp.clip(src, 0, ca - 1), jnp.clip(~src, 0, cb - 1)
+    return tuple(jnp.where(from_a, x[ia], y[ib]) for x, y in zip(a, b))

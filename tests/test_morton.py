@@ -73,3 +73,37 @@ def test_out_of_range_coordinate_names_the_value(bad):
         morton.coords_to_keys([[0.0, 0.0, 0.0], [0.0, bad, 0.0]], 0.05)
     _, ok = morton.points_to_keys(jnp.array([[0.0, bad, 0.0]], jnp.float32), 0.05)
     assert not bool(ok[0])
+
+
+def _sorted_records(rng, n, n_valid, span):
+    """``n`` rows sorted by (hi, lo) with duplicates; rows past ``n_valid`` are padding."""
+    hi = np.sort(rng.integers(0, span, n_valid)).astype(np.int32)
+    lo = rng.integers(0, 3, n_valid).astype(np.int32)
+    order = np.lexsort((lo, hi))
+    hi, lo = hi[order], lo[order]
+    pad = n - n_valid
+    hi = np.concatenate([hi, np.full(pad, morton.SENTINEL_HI, np.int32)])
+    lo = np.concatenate([lo, np.zeros(pad, np.int32)])
+    return hi, lo
+
+
+@pytest.mark.parametrize("ca,cb", [(1, 1), (5, 300), (300, 5), (128, 128), (129, 383), (1000, 1000)])
+def test_merge_sorted_and_ranks_match_a_stable_sort(ca, cb):
+    rng = np.random.default_rng(ca * 7919 + cb)
+    span = max(2, (ca + cb) // 4)  # many ties within and across the lists
+    ah, al = _sorted_records(rng, ca, max(ca - 3, 1), span)
+    bh, bl = _sorted_records(rng, cb, max(cb - 2, 1), span)
+    a = (ah, al, np.arange(ca, dtype=np.int32))  # payload: source row (a >= 0, b < 0)
+    b = (bh, bl, ~np.arange(cb, dtype=np.int32))
+    got = [np.asarray(x) for x in morton.merge_sorted(tuple(map(jnp.asarray, a)),
+                                                      tuple(map(jnp.asarray, b)))]
+    hi, lo, src = (np.concatenate([x, y]) for x, y in zip(a, b))
+    order = np.lexsort((np.arange(ca + cb), lo, hi))  # stable: ties keep a first, then order
+    for g, want in zip(got, (hi[order], lo[order], src[order])):
+        np.testing.assert_array_equal(g, want)
+    key = lambda h, l: h.astype(np.int64) << 24 | l  # noqa: E731
+    lt_a, le_b = (np.asarray(x) for x in morton.merge_ranks(*map(jnp.asarray, (ah, al, bh, bl))))
+    kb = np.sort(key(bh, bl))
+    ka = np.sort(key(ah, al))
+    np.testing.assert_array_equal(lt_a, np.searchsorted(kb, key(ah, al), side="left"))
+    np.testing.assert_array_equal(le_b, np.searchsorted(ka, key(bh, bl), side="right"))
