@@ -682,56 +682,62 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool, gap_capacity: int |
     from a compact list (``_emit``)."""
     m0 = maps[0]
     # 1. every map's boundaries (start, end, start, end, ...: already sorted, as its leaves
-    #    are disjoint) merged into one sorted list; payload: map id, leaf index (-1: an end).
-    lists = []
+    #    are disjoint) merged into one sorted list; payload: the leaf's row among all maps'
+    #    leaves concatenated (map k's rows follow map k - 1's), ~row for an end or padding.
+    lists, first_row = [], np.cumsum([0] + [m.capacity for m in maps])
     for k, m in enumerate(maps):
         valid = m.valid_mask()
         eh, el = _end(m.code[:, 0], m.code[:, 1], m.depth)
-        idx = jnp.where(valid, jnp.arange(m.capacity, dtype=jnp.int32), -1)
+        row = jnp.arange(m.capacity, dtype=jnp.int32) + int(first_row[k])
         pairs = [(m.code[:, 0], jnp.where(valid, eh, _SENT)), (m.code[:, 1], jnp.where(valid, el, 0)),
-                 (jnp.full_like(idx, k), jnp.full_like(idx, k)), (idx, jnp.full_like(idx, -1))]
+                 (jnp.where(valid, row, ~row), ~row)]
         lists.append(tuple(jnp.stack(p, -1).reshape(-1) for p in pairs))
     while len(lists) > 1:  # merge tree: log2(m) levels
         nxt = [morton.merge_sorted(lists[i], lists[i + 1]) for i in range(0, len(lists) - 1, 2)]
         if len(lists) % 2:
             nxt.append(lists[-1])
         lists = nxt
-    bh, bl, bmap, bidx = lists[0]
+    bh, bl, bidx = lists[0]
     n_b = bh.shape[0]
     q = jnp.arange(n_b, dtype=jnp.int32)
     nh, nl = _shift_up(bh, _SENT + 1), _shift_up(bl, 0)
     nonempty = _less(bh, bl, nh, nl) & (bh < _SENT)
     # 2. per map, the leaf covering each elementary interval [b_q, b_{q+1}): the last start
     #    of that map at or before q, if its end lies past b_q; 3. one value per interval
-    #    (sum: map order, clamped after each map, as the fold of fuse). One map at a time, so
-    #    only the running value stays in memory.
+    #    (sum: map order, clamped after each map, as the fold of fuse). One map per loop
+    #    step, so only the running value and one map's coverage are in memory.
     p = m0.params
     lo_c, hi_c = p.clamp_min_log_odds, p.clamp_max_log_odds
-    known = jnp.zeros((n_b,), bool)
-    acc = jnp.zeros((n_b,), jnp.float32)
-    n_known = jnp.zeros((n_b,), jnp.int32)
-    n_exact = jnp.zeros((n_b,), jnp.int32)
-    cov0, split = None, []
-    for k, m in enumerate(maps):
-        last = _cummax(jnp.where((bmap == k) & (bidx >= 0), q, -1))
-        leaf = jnp.clip(bidx[jnp.maximum(last, 0)], 0, m.capacity - 1)
-        lh, ll, ld = m.code[leaf, 0], m.code[leaf, 1], m.depth[leaf]
-        eh, el = _end(lh, ll, ld)
+    leaf_h, leaf_l, leaf_d, leaf_v = (jnp.concatenate(x) for x in zip(
+        *[(m.code[:, 0], m.code[:, 1], m.depth, m.log_odds) for m in maps]))
+    counts = jnp.stack([m.count for m in maps]).astype(jnp.int32)
+    first_row = jnp.asarray(first_row, jnp.int32)
+
+    def cover(k):
+        """Map ``k`` on the intervals: ``(covered, interval is the whole leaf, log-odds)``."""
+        last = _cummax(jnp.where((bidx >= first_row[k]) & (bidx < first_row[k + 1]), q, -1))
+        leaf = jnp.clip(bidx[jnp.maximum(last, 0)], 0, leaf_h.shape[0] - 1)
+        lh, ll = leaf_h[leaf], leaf_l[leaf]
+        eh, el = _end(lh, ll, leaf_d[leaf])
         c = nonempty & (last >= 0) & _less(bh, bl, eh, el)
-        exact = c & (lh == bh) & (ll == bl) & (eh == nh) & (el == nl)
-        v = m.log_odds[leaf]
-        if k == 0:
-            cov0 = c
-            acc = jnp.where(c, _single(mode, v, w[0]), 0.0)
-        else:
-            summed = jnp.clip(jnp.where(known, acc + v, v), lo_c, hi_c)  # fold: clamp per map
-            other = jnp.where(known, _combine(mode, acc, v, 1.0, w[k]), _single(mode, v, w[k]))
-            new = jnp.where(mode == 0, summed, other)
-            acc = jnp.where(c, new, jnp.where(mode == 0, jnp.clip(acc, lo_c, hi_c), acc))
-        known = known | c
-        n_known = n_known + c.astype(jnp.int32)
-        n_exact = n_exact + exact.astype(jnp.int32)
-        split.append(m.count - jnp.sum(exact))
+        return c, c & (lh == bh) & (ll == bl) & (eh == nh) & (el == nl), leaf_v[leaf]
+
+    cov0, exact, v = cover(0)
+    acc = jnp.where(cov0, _single(mode, v, w[0]), 0.0)
+    split = jnp.zeros((len(maps),), jnp.int32).at[0].set(counts[0] - jnp.sum(exact))
+
+    def add_map(k, carry):
+        acc, known, n_known, n_exact, split = carry
+        c, exact, v = cover(k)
+        summed = jnp.clip(jnp.where(known, acc + v, v), lo_c, hi_c)  # fold: clamp per map
+        other = jnp.where(known, _combine(mode, acc, v, 1.0, w[k]), _single(mode, v, w[k]))
+        new = jnp.where(mode == 0, summed, other)
+        acc = jnp.where(c, new, jnp.where(mode == 0, jnp.clip(acc, lo_c, hi_c), acc))
+        return (acc, known | c, n_known + c.astype(jnp.int32), n_exact + exact.astype(jnp.int32),
+                split.at[k].set(counts[k] - jnp.sum(exact)))
+
+    acc, known, n_known, n_exact, split = jax.lax.fori_loop(
+        1, len(maps), add_map, (acc, cov0, cov0.astype(jnp.int32), exact.astype(jnp.int32), split))
     # 4. decompose the known intervals into aligned cells, laid out in order
     n_cells = _materialize(m0.count >= 0, jnp.where(known, _gap_plan(bh, bl, nh, nl), 0))
     ends = _cumsum(n_cells)
@@ -753,11 +759,11 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool, gap_capacity: int |
     if do_prune:
         out = tree._prune_runs(out)
     report = FuseReport(
-        leaves_in=jnp.stack([m.count for m in maps]).astype(jnp.int32),
+        leaves_in=counts,
         refined_cells=total,
         leaves_out=out.count,
         same_depth=jnp.sum(n_exact >= 2).astype(jnp.int32),
-        split=jnp.stack(split).astype(jnp.int32),
+        split=split,
         cells_both=jnp.sum(jnp.where(n_known >= 2, n_cells, 0)).astype(jnp.int32),
         cells_new=jnp.sum(jnp.where(~cov0, n_cells, 0)).astype(jnp.int32),
         overflow=(total > capacity) | ((n_gap > gap_capacity) if compact else False),
