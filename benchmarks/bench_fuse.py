@@ -132,6 +132,19 @@ def timed(fn, repeats):
     return first, statistics.median(ts)
 
 
+def timed_pair(f, g, repeats):
+    """Steady-state medians of two functions, calls alternated (load drifts on a shared VM)."""
+    jax.block_until_ready(f())
+    jax.block_until_ready(g())
+    ts = ([], [])
+    for r in range(repeats):
+        for k in ((0, 1) if r % 2 == 0 else (1, 0)):
+            t0 = time.perf_counter()
+            jax.block_until_ready((f, g)[k]())
+            ts[k].append(time.perf_counter() - t0)
+    return statistics.median(ts[0]), statistics.median(ts[1])
+
+
 def peak_rss_gb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
 
@@ -194,8 +207,7 @@ def bench_many(shape, ms, repeats):
 
         many_out, rep = F.fuse_many(maps, return_report=True)
         cap = omap.bucket_capacity(int(rep.refined_cells))
-        _, tf = timed(fold, repeats)
-        _, tm = timed(lambda: F.fuse_many(maps, capacity=cap).code, repeats)
+        tf, tm = timed_pair(fold, lambda: F.fuse_many(maps, capacity=cap).code, repeats)
         n = fold_out.num_leaves
         same = (n == many_out.num_leaves and
                 np.array_equal(np.asarray(fold_out.code[:n]), np.asarray(many_out.code[:n])) and
