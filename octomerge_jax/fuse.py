@@ -378,18 +378,49 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     last = (ia + 1 >= na) | ~_less(_shift_up(ah, _SENT), _shift_up(al, 0), beh, bel)
     gah = jnp.where(inside_b & last, beh, aeh)
     gal = jnp.where(inside_b & last, bel, ael)
-    n_before = _materialize(gate, jnp.where(valid, _gap_plan(gbh, gbl, ah, al), 0))
-    n_after = _materialize(gate, jnp.where(valid, _gap_plan(aeh, ael, gah, gal), 0))
+    # a gap is empty unless A is strictly inside B's leaf (else gb = a and ga = ae)
     self_emit = _materialize(gate, self_emit)
-    count = n_before + self_emit.astype(jnp.int32) + n_after
     return dict(
-        count=count, n_before=n_before, n_after=n_after, self_emit=self_emit,
-        self_row=(A.code, A.depth, self_val),
+        valid=valid, self_emit=self_emit, self_row=(A.code, A.depth, self_val),
         gap_before=(gbh, gbl, ah, al, gap_val), gap_after=(aeh, ael, gah, gal, gap_val),
+        any_gap=jnp.any(inside_b & (_less(gbh, gbl, ah, al) | _less(aeh, ael, gah, gal))),
         stats=dict(equal=jnp.sum(equal & first), split=jnp.sum(split),
-                   both=jnp.sum(self_emit & cov), new_self=jnp.sum(self_emit & ~cov),
-                   gaps=jnp.sum(n_before + n_after)),
+                   both=jnp.sum(self_emit & cov), new_self=jnp.sum(self_emit & ~cov)),
     )
+
+
+def _lay_out(sides, before, capacity: int, gap_capacity, params, resolution, tree_depth,
+             with_gaps: bool):
+    """The common refinement of the pair kernel's two sides (unpruned): every leaf's cell
+    count (its gaps' cells, in closed form, only ``with_gaps``), prefix sums in merged order,
+    then ``_emit``. ``before[k]``: per leaf of side ``k``, the other side's leaves before it
+    (ranks). Returns ``(map, total cells, gap cells, gap cells of side 0)``."""
+    gate = before[0][0] >= 0
+    plans, counts = [], []
+    for s in sides:
+        if with_gaps:
+            nb, na = _materialize(gate, *(jnp.where(s["valid"], _gap_plan(*s[g][:4]), 0)
+                                          for g in ("gap_before", "gap_after")))
+        else:
+            nb = na = jnp.zeros_like(s["valid"], jnp.int32)
+        plans.append((nb, na))
+        counts.append(nb + s["self_emit"].astype(jnp.int32) + na)
+    # merged order: m1 leaf i is preceded by the m2 leaves with code < its code; m2 leaf j
+    # by the m1 leaves with code <= its code (ties: m1 first; one of a tied pair emits nothing
+    # or the pair is equal and only m1 emits).
+    p = [_cumsum(c) for c in counts]
+    total = (p[0][-1] + p[1][-1]).astype(jnp.int32)
+    selfs, gaps = [], []
+    for k, (s, (nb, na)) in enumerate(zip(sides, plans)):
+        off = p[k] - counts[k] + _excl_at(p[1 - k], before[k])
+        self_slot = off + nb
+        selfs.append((jnp.where(s["self_emit"], self_slot, capacity),) + s["self_row"])
+        if with_gaps:
+            gaps.append((off, nb) + s["gap_before"])
+            gaps.append((self_slot + s["self_emit"].astype(jnp.int32), na) + s["gap_after"])
+    n_gap = sum(jnp.sum(g[1]) for g in gaps) + jnp.int32(0)
+    out = _emit(capacity, total, selfs, gaps, params, resolution, tree_depth, gap_capacity)
+    return out, total, n_gap.astype(jnp.int32), jnp.sum(plans[0][0] + plans[0][1]).astype(jnp.int32)
 
 
 def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth,
@@ -404,6 +435,10 @@ def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth,
     ``capacity``) that is done on a compact list of at most ``gap_capacity`` gap cells
     (``_gap_cells``; more is an overflow the caller reports), not on every slot.
     """
+    if not gaps:
+        code = jnp.broadcast_to(jnp.array([_SENT, 0], jnp.int32), (capacity, 2))
+        depth, val = jnp.full((capacity,), _D, jnp.int32), jnp.zeros((capacity,), jnp.float32)
+        return _put_selfs(code, depth, val, selfs, total, capacity, params, resolution, tree_depth)
     if gap_capacity is not None and gap_capacity < capacity:
         code, depth, val = _gap_cells(capacity, gap_capacity, gaps)
         return _put_selfs(code, depth, val, selfs, total, capacity, params, resolution, tree_depth)
@@ -494,22 +529,14 @@ def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, 
     lo_c, hi_c = m1.params.clamp_min_log_odds, m1.params.clamp_max_log_odds
     s1 = _side(True, m1, m2, le2, rule, w1, w2, lo_c, hi_c)
     s2 = _side(False, m2, m1, le1, rule, w2, w1, lo_c, hi_c)
-    # merged order: m1 leaf i is preceded by the m2 leaves with code < its code; m2 leaf j
-    # by the m1 leaves with code <= its code (ties: m1 first; one of a tied pair emits nothing
-    # or the pair is equal and only m1 emits).
-    p1, p2 = _cumsum(s1["count"]), _cumsum(s2["count"])
-    total = (p1[-1] + p2[-1]).astype(jnp.int32)
-    selfs, gaps = [], []
-    for s, p, before in ((s1, p1, _excl_at(p2, lt2)), (s2, p2, _excl_at(p1, le1))):
-        off = p - s["count"] + before
-        self_slot = off + s["n_before"]
-        selfs.append((jnp.where(s["self_emit"], self_slot, capacity),) + s["self_row"])
-        gaps.append((off, s["n_before"]) + s["gap_before"])
-        gaps.append((self_slot + s["self_emit"].astype(jnp.int32), s["n_after"]) + s["gap_after"])
-    n_gap = sum(jnp.sum(g[1]) for g in gaps).astype(jnp.int32)
     compact = gap_capacity is not None and gap_capacity < capacity
-    out = _emit(capacity, total, selfs, gaps, m1.params, m1.resolution, m1.tree_depth,
-                gap_capacity if compact else None)
+    lay = functools.partial(_lay_out, (s1, s2), (lt2, le1), capacity,
+                            gap_capacity if compact else None, m1.params, m1.resolution,
+                            m1.tree_depth)
+    # gaps (parts of a split leaf the finer map does not know) are rare; without any, their
+    # closed-form cell counts and layout are skipped (under vmap both branches run)
+    out, total, n_gap, new_gap_cells = jax.lax.cond(
+        s1["any_gap"] | s2["any_gap"], lambda: lay(True), lambda: lay(False))
     if do_prune:
         out = tree._prune_runs(out)
     st1, st2 = s1["stats"], s2["stats"]
@@ -520,7 +547,7 @@ def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, 
         same_depth=st1["equal"].astype(jnp.int32),
         split=jnp.stack([st1["split"], st2["split"]]).astype(jnp.int32),
         cells_both=(st1["both"] + st2["both"]).astype(jnp.int32),
-        cells_new=(st2["new_self"] + st1["gaps"]).astype(jnp.int32),
+        cells_new=(st2["new_self"] + new_gap_cells).astype(jnp.int32),
         overflow=(total > capacity) | ((n_gap > gap_capacity) if compact else False),
         capacity=capacity,
     )
