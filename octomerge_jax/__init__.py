@@ -11,6 +11,7 @@ from .batch import BatchResult, merge_batch
 from .config import MergeConfig, load_config
 from .examples import example_map
 from .fuse import FuseReport, fuse, fuse_many
+from .hostmem import reuse_host_memory
 from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
 from .insert import CapacityPlan, insert_point_cloud, insert_point_clouds
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
@@ -110,6 +111,7 @@ __all__ = [
     "prune",
     "read_scan_graph",
     "rendezvous_transform",
+    "reuse_host_memory",
     "rotation_error",
     "sample",
     "save",

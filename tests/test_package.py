@@ -1,6 +1,8 @@
 import subprocess
 import sys
 
+import pytest
+
 import octomerge_jax as om
 from octomerge_jax import examples, tree
 
@@ -30,3 +32,46 @@ def test_shipped_example_map_is_the_generated_room():
     assert tree.equal(shipped, examples.make_example_room())
     occupied = int(shipped.is_occupied().sum())
     assert 0 < occupied < shipped.num_leaves
+
+
+_REUSE_PROBE = """
+import ctypes, resource, sys, warnings
+import octomerge_jax
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+if sys.argv[1] == "on":
+    assert octomerge_jax.reuse_host_memory() is True
+def touch_faults(n=96 << 20):  # minor faults while writing a fresh 96 MB block
+    p = libc.malloc(n)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    ctypes.memset(p, 1, n)
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+    libc.free(p)
+    return faults
+touch_faults()
+print(touch_faults())
+import jax.numpy as jnp
+jnp.zeros(3).block_until_ready()
+with warnings.catch_warnings(record=True) as w:
+    warnings.simplefilter("always")
+    late = octomerge_jax.reuse_host_memory()
+print(late, [str(x.category.__name__) for x in w])
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc setting")
+def test_reuse_host_memory_keeps_freed_blocks_and_is_opt_in():
+    def probe(mode):
+        out = subprocess.run([sys.executable, "-c", _REUSE_PROBE, mode], capture_output=True,
+                             text=True, check=True)
+        faults, late = out.stdout.strip().splitlines()
+        return int(faults), late
+    # default (import only): a freed 96 MB block goes back to the system, re-faulted next time
+    faults, late = probe("off")
+    assert faults > 10_000
+    assert late == "False ['RuntimeWarning']"  # too late once JAX runs: nothing changed
+    # opted in before JAX starts: the block stays in the heap and is reused
+    faults, late = probe("on")
+    assert faults < 1_000
+    assert late == "True []"

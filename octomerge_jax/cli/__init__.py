@@ -10,6 +10,7 @@ import argparse
 import importlib
 import sys
 
+from ..hostmem import reuse_host_memory
 from ._common import CliError
 
 # Subcommand modules, in the order ``--help`` lists them.
@@ -84,5 +85,12 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
 
+def console_main() -> int:
+    """The ``octomerge`` command: ``main`` in a process of its own, so XLA:CPU's scratch
+    memory is kept for reuse between calls (``hostmem.reuse_host_memory``)."""
+    reuse_host_memory()
+    return main()
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    sys.exit(console_main())
