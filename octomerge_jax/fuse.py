@@ -353,8 +353,8 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     jc = jnp.clip(j, 0, cb - 1)
     jn = jnp.clip(j + 1, 0, cb - 1)
     gate = na >= 0
-    bh, bl, bd, bv, bnh, bnl = _materialize(gate, B.code[jc, 0], B.code[jc, 1], B.depth[jc],
-                                            B.log_odds[jc], B.code[jn, 0], B.code[jn, 1])
+    bh, bl, bd, bv, bnh, bnl = _materialize(gate, lambda: (
+        B.code[jc, 0], B.code[jc, 1], B.depth[jc], B.log_odds[jc], B.code[jn, 0], B.code[jn, 1]))
     beh, bel = _end(bh, bl, bd)
     cov = valid & (j >= 0) & (j < nb) & _less(ah, al, beh, bel)
     equal = cov & (bd == A.depth)
@@ -362,7 +362,7 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     finer_at_start = cov & (bd > A.depth)
     next_inside = (j + 1 < nb) & _less(bnh, bnl, aeh, ael)
     split = valid & (finer_at_start | (~cov & next_inside))
-    self_emit = valid & ~split & ~(equal if not first else jnp.zeros_like(equal))
+    self_emit = _materialize(gate, lambda: valid & ~split & ~(equal & (not first)))
 
     va = A.log_odds
     both = _combine(rule, va, bv, w_a, w_b) if first else _combine(rule, bv, va, w_b, w_a)
@@ -378,11 +378,10 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     last = (ia + 1 >= na) | ~_less(_shift_up(ah, _SENT), _shift_up(al, 0), beh, bel)
     gah = jnp.where(inside_b & last, beh, aeh)
     gal = jnp.where(inside_b & last, bel, ael)
-    # a gap is empty unless A is strictly inside B's leaf (else gb = a and ga = ae)
-    self_emit = _materialize(gate, self_emit)
     return dict(
         valid=valid, self_emit=self_emit, self_row=(A.code, A.depth, self_val),
         gap_before=(gbh, gbl, ah, al, gap_val), gap_after=(aeh, ael, gah, gal, gap_val),
+        # a gap is empty unless A is strictly inside B's leaf (else gb = a and ga = ae)
         any_gap=jnp.any(inside_b & (_less(gbh, gbl, ah, al) | _less(aeh, ael, gah, gal))),
         stats=dict(equal=jnp.sum(equal & first), split=jnp.sum(split),
                    both=jnp.sum(self_emit & cov), new_self=jnp.sum(self_emit & ~cov)),
@@ -399,8 +398,8 @@ def _lay_out(sides, before, capacity: int, gap_capacity, params, resolution, tre
     plans, counts = [], []
     for s in sides:
         if with_gaps:
-            nb, na = _materialize(gate, *(jnp.where(s["valid"], _gap_plan(*s[g][:4]), 0)
-                                          for g in ("gap_before", "gap_after")))
+            nb, na = _materialize(gate, lambda: tuple(jnp.where(s["valid"], _gap_plan(*s[g][:4]), 0)
+                                                      for g in ("gap_before", "gap_after")))
         else:
             nb = na = jnp.zeros_like(s["valid"], jnp.int32)
         plans.append((nb, na))
@@ -452,7 +451,7 @@ def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth,
     start = _cummax(gap_rows[:, 5]) - 1
     g = gap_rows[jnp.maximum(start, 0)]
     g0, g1, g2, g3 = g[:, 0], g[:, 1], g[:, 2], g[:, 3]
-    info = _materialize(total >= 0, _gap_cell_info(g0, g1, g2, g3, q - start))
+    info = _materialize(total >= 0, lambda: _gap_cell_info(g0, g1, g2, g3, q - start))
     ch, cl, cd = _cell_code(g0, g1, g2, g3, info)
     ok = q < total
     code = jnp.stack([jnp.where(ok, ch, _SENT), jnp.where(ok, cl, 0)], -1)
@@ -766,7 +765,7 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool, gap_capacity: int |
     acc, known, n_known, n_exact, split = jax.lax.fori_loop(
         1, len(maps), add_map, (acc, cov0, cov0.astype(jnp.int32), exact.astype(jnp.int32), split))
     # 4. decompose the known intervals into aligned cells, laid out in order
-    n_cells = _materialize(m0.count >= 0, jnp.where(known, _gap_plan(bh, bl, nh, nl), 0))
+    n_cells = _materialize(m0.count >= 0, lambda: jnp.where(known, _gap_plan(bh, bl, nh, nl), 0))
     ends = _cumsum(n_cells)
     total = ends[-1].astype(jnp.int32)
     value, first = jnp.clip(acc, lo_c, hi_c), ends - n_cells

@@ -85,13 +85,15 @@ def _shift_down(x, k, fill):
     return jnp.concatenate([pad, x[:-k]], axis=0)
 
 
-def _materialize(gate, *xs):
-    """``xs`` unchanged, computed once into memory: ``gate`` is a traced True, so XLA cannot
-    fuse (and so recompute) their producers into each consumer, e.g. into every level of a
-    scan (an ``optimization_barrier`` does not survive XLA's CPU pipeline). A performance
+def _materialize(gate, fn):
+    """``fn()`` (an array or a tuple of arrays) computed once into memory: inside a
+    ``lax.cond`` on ``gate``, a traced True, so XLA cannot fuse (and so recompute) its ops
+    into each consumer, e.g. into every level of a scan (an ``optimization_barrier`` does not
+    survive XLA's CPU pipeline). Computed inside the branch, the result is written straight
+    to the conditional's buffer (finished arrays passed in would be copied). A performance
     hint only; under ``vmap`` it becomes a select."""
-    out = jax.lax.cond(gate, lambda *a: a, lambda *a: tuple(jnp.zeros_like(x) for x in a), *xs)
-    return out if len(xs) > 1 else out[0]
+    shapes = jax.eval_shape(fn)
+    return jax.lax.cond(gate, fn, lambda: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes))
 
 
 _SCANS = {"add": (jax.lax.cumsum, jnp.add, 0),
@@ -193,7 +195,7 @@ def _prune_runs(m: OccupancyMap) -> OccupancyMap:
     k_start = jnp.maximum(div3(_top_bit(ch ^ rsh, cl ^ rsl)), div3(tz))
     k_end = div3(_top_bit(ch ^ reh, cl ^ rel))
     k = jnp.minimum(jnp.minimum(k_start, k_end), _D - 1)
-    depth = _materialize(gate, jnp.minimum(m.depth, _D - k))
+    depth = _materialize(gate, lambda: jnp.minimum(m.depth, _D - k))
     keep = valid & morton.words_equal(morton.truncate_words(m.code, depth), m.code)
     return _compact(m, keep, depth=depth)
 
