@@ -24,8 +24,9 @@ How, on flat Morton intervals (a leaf at depth ``d`` covers ``[code, code + 8^(1
 3. Cell counts per leaf, one prefix sum in merged order: every leaf scatters its own cell to
    its slot, every non-empty gap its interval to its first slot, and each gap slot finds its
    gap by a cumulative max and computes its cell: the common refinement comes out already
-   sorted. Gap cells are rare in practice (0-0.1 % of the refinement measured), so on the
-   host they are laid out from a compact list of ``max(capacity / 64, 512)`` rows (re-run
+   sorted. Gap cells are rare in practice (0-0.1 % of the refinement measured): when no
+   leaf has one, their counts and layout are skipped altogether (``lax.cond``); otherwise on
+   the host they are laid out from a compact list of ``max(capacity / 64, 512)`` rows (re-run
    with room for all if there are more) instead of per output slot: 1.2-1.6x faster.
    Values are combined per rule, clamped, and pruned maximally in one pass
    (``tree.prune``: a node collapses iff its interval lies in one run of contiguous,
@@ -49,8 +50,8 @@ to p = 0.6) are not reproduced.
 
 ``fuse_many(maps)`` fuses m maps in one pass: all leaf boundaries merged into one sorted
 list (a merge tree of the maps' sorted boundary lists, no sort), elementary intervals, one
-common refinement, per-map coverage by cumulative maxima, one combined value per cell (two
-maps: the pair kernel above, which is that refinement). For ``"sum"`` it is
+common refinement, per-map coverage by cumulative maxima (one map per loop step), one
+combined value per cell (two maps: the pair kernel above, which is that refinement). For ``"sum"`` it is
 bit-identical to folding ``fuse`` left to right (values are accumulated in map order with a
 clamp after each map, as the fold does).
 
