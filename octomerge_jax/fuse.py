@@ -51,9 +51,9 @@ to p = 0.6) are not reproduced.
 ``fuse_many(maps)`` fuses m maps in one pass: all leaf boundaries merged into one sorted
 list (a merge tree of the maps' sorted boundary lists, no sort), elementary intervals, one
 common refinement, per-map coverage by cumulative maxima (one map per loop step), one
-combined value per cell (two maps: the pair kernel above, which is that refinement). For ``"sum"`` it is
-bit-identical to folding ``fuse`` left to right (values are accumulated in map order with a
-clamp after each map, as the fold does).
+combined value per cell (two maps: the pair kernel above, which is that refinement). For
+``"sum"`` it is bit-identical to folding ``fuse`` left to right (values are accumulated in
+map order with a clamp after each map, as the fold does).
 
 Everything is jitted with static capacities; a refinement larger than the capacity is
 reported in ``FuseReport.overflow`` (and raised on the host when no report is requested),
@@ -395,7 +395,7 @@ def _lay_out(sides, before, capacity: int, gap_capacity, params, resolution, tre
     count (its gaps' cells, in closed form, only ``with_gaps``), prefix sums in merged order,
     then ``_emit``. ``before[k]``: per leaf of side ``k``, the other side's leaves before it
     (ranks). Returns ``(map, total cells, gap cells, gap cells of side 0)``."""
-    gate = before[0][0] >= 0
+    gate = before[0][0] >= 0  # a traced True (ranks are >= 0), for _materialize
     plans, counts = [], []
     for s in sides:
         if with_gaps:
@@ -666,8 +666,9 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
     All leaf boundaries are merged into one sorted list (a merge tree of the maps' sorted
     boundary lists, no sort), the elementary intervals between them form one common
     refinement, each map's value on it is found by a cumulative max, and one value per cell
-    is computed (two maps take the pair kernel of ``fuse``, the same refinement): for ``"sum"`` accumulated in map order with a clamp
-    after each map, so the result is bit-identical to ``fuse(fuse(m0, m1), m2) ...``;
+    is computed (two maps take the pair kernel of ``fuse``, the same refinement): for
+    ``"sum"`` accumulated in map order with a clamp after each map, so the result is
+    bit-identical to ``fuse(fuse(m0, m1), m2) ...``;
     ``"max"``: the maximum; ``"weighted"``: ``sum_k w_k L_k`` over the maps that know the
     voxel, clamped once. ``weights``: ``(m,)`` floats for ``"weighted"``.
     Other arguments as ``fuse``.
