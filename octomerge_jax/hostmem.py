@@ -10,10 +10,11 @@ their own that do the same, so every call faults its scratch pages in again: mea
 ``mmap`` and never trim it, so freed scratch stays in the process and the next call of the same
 size reuses it (2,000-16,000 faults, 0.31-0.35 s for that fuse). The costs: the process keeps
 its peak heap until it exits (it is reused, not returned to the system), and threads share one
-malloc arena. Arenas are bound to threads when JAX's backend starts, so call it once at startup, before
-the first JAX computation (the ``octomerge`` CLI does); later it changes nothing and warns. The
-same from outside Python: ``GLIBC_TUNABLES=glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:``
-``glibc.malloc.trim_threshold=2147483647``. Importing the package never does this.
+malloc arena. Arenas are bound to threads when JAX's backend starts, so call it once at startup,
+before the first JAX computation (the ``octomerge`` CLI does); later it changes nothing and
+warns. The same from outside Python:
+``GLIBC_TUNABLES=glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=2147483647``.
+Importing the package never does this.
 """
 
 from __future__ import annotations
