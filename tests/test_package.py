@@ -75,3 +75,18 @@ def test_reuse_host_memory_keeps_freed_blocks_and_is_opt_in():
     faults, late = probe("on")
     assert faults < 1_000
     assert late == "True []"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc setting")
+@pytest.mark.parametrize("value,applied", [(None, True), ("0", False), ("off", False), ("1", True)])
+def test_octomerge_command_reuses_host_memory_unless_turned_off(value, applied):
+    import os
+
+    code = ("import sys, octomerge_jax.hostmem as h; from octomerge_jax.cli import console_main;"
+            "sys.argv = ['octomerge', 'dump-config']; console_main(); print(h._applied, file=sys.stderr)")
+    env = {k: v for k, v in os.environ.items() if k != "OCTOMERGE_REUSE_HOST_MEMORY"}
+    if value is not None:
+        env["OCTOMERGE_REUSE_HOST_MEMORY"] = value
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    assert out.stderr.strip().splitlines()[-1] == str(applied)
+    assert "[registration]" in out.stdout  # the command itself ran

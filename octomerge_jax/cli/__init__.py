@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from ..hostmem import reuse_host_memory
@@ -85,10 +86,18 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
 
+def _wants_host_memory_reuse(environ=os.environ) -> bool:
+    """``OCTOMERGE_REUSE_HOST_MEMORY`` unset or not one of ``0 / off / no / false``."""
+    value = environ.get("OCTOMERGE_REUSE_HOST_MEMORY", "1").strip().lower()
+    return value not in ("0", "off", "no", "false")
+
+
 def console_main() -> int:
     """The ``octomerge`` command: ``main`` in a process of its own, so XLA:CPU's scratch
-    memory is kept for reuse between calls (``hostmem.reuse_host_memory``)."""
-    reuse_host_memory()
+    memory is kept for reuse between calls (``hostmem.reuse_host_memory``; opt out with
+    ``OCTOMERGE_REUSE_HOST_MEMORY=0``)."""
+    if _wants_host_memory_reuse():
+        reuse_host_memory()
     return main()
 
 
