@@ -436,8 +436,7 @@ def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth,
     (``_gap_cells``; more is an overflow the caller reports), not on every slot.
     """
     if not gaps:
-        code = jnp.broadcast_to(jnp.array([_SENT, 0], jnp.int32), (capacity, 2))
-        depth, val = jnp.full((capacity,), _D, jnp.int32), jnp.zeros((capacity,), jnp.float32)
+        code, depth, val = tree._padding(capacity)
         return _put_selfs(code, depth, val, selfs, total, capacity, params, resolution, tree_depth)
     if gap_capacity is not None and gap_capacity < capacity:
         code, depth, val = _gap_cells(capacity, gap_capacity, gaps)
@@ -506,11 +505,9 @@ def _gap_cells(capacity: int, gap_capacity: int, gaps):
     t = r - first[g]
     ch, cl, cd = _gap_cell(sh[g], sl[g], eh[g], el[g], t)
     dst = jnp.where(r < n_cells, slot[g] + t, cap)
-    code = jnp.stack([jnp.full((cap,), _SENT, jnp.int32), jnp.zeros((cap,), jnp.int32)], -1)
-    code = code.at[dst].set(jnp.stack([ch, cl], -1), mode="drop")
-    depth = jnp.full((cap,), _D, jnp.int32).at[dst].set(cd, mode="drop")
-    val = jnp.zeros((cap,), jnp.float32).at[dst].set(v[g], mode="drop")
-    return code, depth, val
+    code, depth, val = tree._padding(cap)
+    return (code.at[dst].set(jnp.stack([ch, cl], -1), mode="drop"),
+            depth.at[dst].set(cd, mode="drop"), val.at[dst].set(v[g], mode="drop"))
 
 
 def _excl_at(incl, idx):

@@ -146,6 +146,13 @@ def _compact_rows(rows, keep, fill):
     return jnp.where((jnp.arange(cap) < count)[:, None], out, fill), count
 
 
+def _padding(capacity: int):
+    """``(code (capacity, 2), depth, log_odds)`` holding only padding rows (code
+    ``(SENTINEL_HI, 0)``, depth 16, log-odds 0): buffers to scatter leaves into."""
+    return (jnp.broadcast_to(jnp.array([morton.SENTINEL_HI, 0], jnp.int32), (capacity, 2)),
+            jnp.full((capacity,), _D, jnp.int32), jnp.zeros((capacity,), jnp.float32))
+
+
 def _compact(m: OccupancyMap, keep, depth=None, log_odds=None) -> OccupancyMap:
     """Keep the rows where ``keep`` (order preserved), padding the rest."""
     depth = m.depth if depth is None else depth
@@ -155,10 +162,10 @@ def _compact(m: OccupancyMap, keep, depth=None, log_odds=None) -> OccupancyMap:
     pos = jnp.where(keep, rank - 1, cap)
     # each array scattered into a buffer pre-filled with its padding value: no stacked
     # copy, no second pass to pad (less memory written)
-    code = jnp.broadcast_to(jnp.array([morton.SENTINEL_HI, 0], jnp.int32), (cap, 2)).at[pos].set(
-        m.code, mode="drop")
-    depth = jnp.full((cap,), _D, jnp.int32).at[pos].set(depth.astype(jnp.int32), mode="drop")
-    log_odds = jnp.zeros((cap,), jnp.float32).at[pos].set(log_odds.astype(jnp.float32), mode="drop")
+    pad_code, pad_depth, pad_value = _padding(cap)
+    code = pad_code.at[pos].set(m.code, mode="drop")
+    depth = pad_depth.at[pos].set(depth.astype(jnp.int32), mode="drop")
+    log_odds = pad_value.at[pos].set(log_odds.astype(jnp.float32), mode="drop")
     return OccupancyMap(code, depth, log_odds, rank[-1], m.params, m.resolution, m.tree_depth)
 
 
