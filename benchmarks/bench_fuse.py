@@ -25,13 +25,13 @@ import resource
 import statistics
 import time
 
+import _host_memory
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from octomerge_jax import map as omap
 from octomerge_jax import morton
-from octomerge_jax.hostmem import reuse_host_memory
 
 F = importlib.import_module("octomerge_jax.fuse")  # the package re-exports the function `fuse`
 
@@ -223,13 +223,9 @@ def main():
     ap.add_argument("--sizes", default="small,medium,large")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--many", default="2,4,8", help="m values for fuse_many vs fold ('' to skip)")
-    ap.add_argument("--reuse-host-memory", action="store_true",
-                    help="keep XLA:CPU scratch memory between calls (octomerge_jax.reuse_host_memory, "
-                         "as the octomerge CLI does)")
+    _host_memory.add_flag(ap)
     args = ap.parse_args()
-    if args.reuse_host_memory:
-        assert reuse_host_memory(), "reuse_host_memory() did not apply"
-    print(f"host memory reuse: {'on' if args.reuse_host_memory else 'off (library default)'}")
+    print(f"host memory reuse: {_host_memory.apply(args)}")
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
           f"load average {os.getloadavg()[0]:.2f} (and at the end of each table)")
     bench_pairs([s for s in args.sizes.split(",") if s], args.repeats)

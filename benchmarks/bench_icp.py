@@ -19,11 +19,11 @@ import importlib
 import platform
 import time
 
+import _host_memory
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from octomerge_jax.hostmem import reuse_host_memory
 from octomerge_jax.registration import metrics, overlap
 from octomerge_jax.registration._testing import scene_pair, xyz_rpy64
 
@@ -203,17 +203,14 @@ def main():
     ap.add_argument("--skip-grid", action="store_true")
     ap.add_argument("--coarse-matching", default="centroid", choices=icp_mod.COARSE_MATCHING,
                     help="ours: matching on the coarse stages (see registration.icp)")
-    ap.add_argument("--reuse-host-memory", action="store_true",
-                    help="keep XLA:CPU scratch memory between calls (octomerge_jax.reuse_host_memory, "
-                         "as the octomerge CLI does)")
+    _host_memory.add_flag(ap)
     args = ap.parse_args()
-    if args.reuse_host_memory:
-        assert reuse_host_memory(), "reuse_host_memory() did not apply"
+    reuse = _host_memory.apply(args)
     global COARSE
     COARSE = args.coarse_matching
     print(f"# bench_icp  jax {jax.__version__} ({jax.default_backend()}), {platform.processor() or platform.machine()}, "
           f"open3d {'yes' if o3d else 'missing'}, small_gicp {'yes' if sg else 'missing'}, "
-          f"ours coarse_matching={COARSE}, host memory reuse {'on' if args.reuse_host_memory else 'off'}")
+          f"ours coarse_matching={COARSE}, host memory reuse {reuse}")
     if not args.skip_sizes:
         bench_sizes(args.res, args.repeats)
     if args.multi:

@@ -25,6 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import _host_memory
 import jax
 import numpy as np
 
@@ -118,17 +119,12 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--batch", type=int, default=8, help="pairs for the batch benchmark (0: skip)")
     ap.add_argument("--no-sizes", action="store_true")
-    ap.add_argument("--reuse-host-memory", action="store_true",
-                    help="keep XLA:CPU scratch memory between calls (octomerge_jax.reuse_host_memory, "
-                         "as the octomerge CLI does)")
+    _host_memory.add_flag(ap)
     a = ap.parse_args(argv)
-    if a.reuse_host_memory:
-        from octomerge_jax.hostmem import reuse_host_memory
-
-        assert reuse_host_memory(), "reuse_host_memory() did not apply"
+    reuse = _host_memory.apply(a)
     print(f"# bench_merge: {platform.machine()} x{__import__('os').cpu_count()}, "
           f"{jax.devices()[0].platform}, JAX {jax.__version__}, "
-          f"host memory reuse {'on' if a.reuse_host_memory else 'off'}")
+          f"host memory reuse {reuse}")
     if not a.no_sizes:
         bench_sizes(a.res, a.repeats)
     if a.batch:
