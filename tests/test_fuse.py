@@ -373,19 +373,51 @@ def test_vmap_over_stacked_pairs():
         assert_same_leaves(mi, ref_fuse([a, b]))
 
 
-def test_fuse_many_equals_fold_and_reference():
-    rng = np.random.default_rng(41)
-    roots = roots_near_origin(rng, n=4, depth=13)
-    maps = [random_map(rng, [roots[k], roots[(k + 1) % 4]]) for k in range(4)]
+def ref_split_counts(maps):
+    """Per map, leaves strictly containing a leaf of another map (split by fusion), and the
+    leaves held by two or more maps that no map splits (same depth, case 2)."""
+    lvs = [(m.leaves().codes.astype(np.uint64), m.leaves().depths) for m in maps]
+    split = []
+    for k, (c, d) in enumerate(lvs):
+        e = c + span(d)
+        inner = np.zeros(c.size, bool)
+        for j, (c2, d2) in enumerate(lvs):
+            if j != k:
+                for i in range(c.size):
+                    inner[i] |= np.any((d2 > d[i]) & (c2 >= c[i]) & (c2 < e[i]))
+        split.append(inner)
+    whole = {}
+    for (c, d), s in zip(lvs, split):
+        for ci, di in zip(c[~s], d[~s]):
+            whole[(int(ci), int(di))] = whole.get((int(ci), int(di)), 0) + 1
+    return [int(s.sum()) for s in split], sum(v >= 2 for v in whole.values())
+
+
+def test_fuse_many_deep_nesting_equals_fold():
+    """Five maps over the same region (chains of up to five nested leaves, a duplicated map,
+    sums that hit the clamps mid-way): the one-pass kernel, with boundary lists sized on the
+    host and at the jit default (2 x capacity), equals the fold and the reference."""
+    rng = np.random.default_rng(3)
+    roots = roots_near_origin(rng, n=2, depth=13)
+    hot = np.float32([-2.0, 1.7, 3.5, 2.9])  # sums pass LMAX (3.48) and come back
+    maps = [random_map(rng, roots, values=hot, min_depth=12 + k % 3, capacity=CAP_IN) for k in range(4)]
+    maps.insert(2, maps[0])  # equal leaves in two maps
     fold = maps[0]
-    for m in maps[1:]:
-        fold = F.fuse(fold, m)
-    many, rep = F.fuse_many(maps, return_report=True)
-    assert_same_leaves(many, (fold.leaves().codes, fold.leaves().depths, fold.leaves().log_odds))
-    assert_same_leaves(many, ref_fuse(maps))
-    for rule, w in (("max", None), ("weighted", (0.5, 1.0, 2.0, 0.25))):  # exact products
+    for mk in maps[1:]:
+        fold = F.fuse(fold, mk, capacity=CAP_OUT)
+    want = (fold.leaves().codes, fold.leaves().depths, fold.leaves().log_odds)
+    assert_same_leaves(fold, ref_fuse(maps))
+    split, same = ref_split_counts(maps)
+    sizes = [F._list_size(int(n)) for n in np.asarray(F._boundary_counts(tuple(maps)))]
+    assert all(s < 2 * m.capacity for s, m in zip(sizes, maps))  # the host compacts the lists
+    jit_default = F._fuse_many(tuple(maps), jnp.ones(5, jnp.float32), jnp.int32(0), CAP_OUT, True)
+    for out, rep in (F.fuse_many(maps, return_report=True), jit_default[:2]):
+        assert_same_leaves(out, want)
+        h = rep.host()
+        assert (h["split"], h["same_depth"]) == (split, same)
+        assert not h["overflow"] and h["leaves_in"] == [m.num_leaves for m in maps]
+    for rule, w in (("max", None), ("weighted", (0.5, 1.0, 2.0, 0.25, 1.5))):
         assert_same_leaves(F.fuse_many(maps, rule, weights=w), ref_fuse(maps, rule, w))
-    assert rep.host()["leaves_in"] == [m.num_leaves for m in maps]
 
 
 @settings(max_examples=10, deadline=None)
