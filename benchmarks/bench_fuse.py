@@ -11,6 +11,10 @@ real building map pairs: merge 0.10 s / 0.37 s / 1.53 s for 258k+311k / 1.1M+1.2
 4.4M+4.7M leaves, plus pruning 0.05 / 0.20 / 0.74 s. We compare leaves per second
 (n1 + n2) / (merge + prune) at the nearest anchor size. Target: >= 3x.
 
+``fuse_many`` vs the fold ``fuse(fuse(m0, m1), m2) ...`` on m crops of the small building in two
+layouts (``many_maps``): ``slide`` (each voxel in one or two maps) and ``shared`` (each voxel in
+up to m maps, as m robots exploring the same building).
+
 Usage: ``python benchmarks/bench_fuse.py [--sizes small,medium,large] [--repeats 3]``
 Prints a table; compile (first call) is reported apart from the steady-state median
 (``block_until_ready``). Peak memory is the process peak RSS after each row.
@@ -178,20 +182,33 @@ def bench_pairs(sizes, repeats):
     print(f"load average {os.getloadavg()[0]:.2f}")
 
 
-def bench_many(shape, ms, repeats):
-    print(f"\n## fuse_many vs fold of fuse (sum), m crops of a {shape} building sliding along x")
-    print(f"{'m':>3} {'leaves':>9} {'fold s':>8} {'many s':>8} {'fold/many':>9} {'equal':>6}")
-    rng = np.random.default_rng(1)
-    keys, (f1, f2) = building(shape, rng)
+def many_maps(shape, m, layout):
+    """m crops of one building: ``"slide"``, windows sliding along x, each overlapping the next
+    by 30 % (every voxel in one or two maps); ``"shared"``, every map sees 85 % of the building
+    (windows shifted by up to 15 %) with its own noise (every voxel in up to m maps). Odd maps
+    are maximum likelihood (coarser pruned)."""
+    fields = []
+    for s in range(1 if layout == "slide" else (m + 1) // 2):
+        keys, fs = building(shape, np.random.default_rng(1 + s))
+        fields += fs
     x = keys[:, 0].astype(np.int64) - keys[:, 0].min()
     X = shape[0]
+    maps = []
+    for k in range(m):
+        if layout == "slide":
+            width = X / (0.7 * m + 0.3)
+            lo, vals = int(k * 0.7 * width), fields[k % 2]
+        else:
+            width, lo, vals = 0.85 * X, int(0.15 * X * k / max(m - 1, 1)), fields[k]
+        maps.append(crop_map(keys, vals, (x >= lo) & (x < lo + int(width)), ml=(k % 2 == 1)))
+    return maps
+
+
+def bench_many(shape, ms, layout, repeats):
+    print(f"\n## fuse_many vs fold of fuse (sum), m crops of a {shape} building, {layout!r} layout")
+    print(f"{'m':>3} {'leaves':>9} {'fold s':>8} {'many s':>8} {'fold/many':>9} {'equal':>6}")
     for m in ms:
-        width = X / (0.7 * m + 0.3)
-        maps = []
-        for k in range(m):
-            lo = int(k * 0.7 * width)
-            vals = f1 if k % 2 == 0 else f2
-            maps.append(crop_map(keys, vals, (x >= lo) & (x < lo + int(width)), ml=(k % 2 == 1)))
+        maps = many_maps(shape, m, layout)
         # plan the fold's capacities once (host), then time the steady fold with them; every
         # call (each fold step and fuse_many) runs at its own refinement's bucket
         caps, acc = [], maps[0]
@@ -223,6 +240,7 @@ def main():
     ap.add_argument("--sizes", default="small,medium,large")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--many", default="2,4,8", help="m values for fuse_many vs fold ('' to skip)")
+    ap.add_argument("--layouts", default="slide,shared", help="fuse_many map layouts (see many_maps)")
     _host_memory.add_flag(ap)
     args = ap.parse_args()
     print(f"host memory reuse: {_host_memory.apply(args)}")
@@ -230,7 +248,8 @@ def main():
           f"load average {os.getloadavg()[0]:.2f} (and at the end of each table)")
     bench_pairs([s for s in args.sizes.split(",") if s], args.repeats)
     if args.many:
-        bench_many(SIZES["small"], [int(m) for m in args.many.split(",")], args.repeats)
+        for layout in args.layouts.split(","):
+            bench_many(SIZES["small"], [int(m) for m in args.many.split(",")], layout, args.repeats)
 
 
 if __name__ == "__main__":
