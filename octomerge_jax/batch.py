@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import hostmem
 from .config import MergeConfig, config_from_dict, config_to_dict
 from .map import OccupancyMap, bucket_capacity
 from .pipeline import (
@@ -518,8 +519,10 @@ def _run_dask(todo, cfg_dict, scheduler, workers, done, bar, summary_path, write
     elif scheduler:
         client, own_client = Client(scheduler), True
     else:
+        # workers keep XLA:CPU scratch memory as this process does (hostmem; the octomerge
+        # command opts in), set from their environment at process start
         own_cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None)
+                                   dashboard_address=None, env=hostmem.child_env())
         client, own_client = Client(own_cluster), True
     try:
         futures = [client.submit(run_pair, row, cfg_dict, write_reports, key=f"octomerge-pair-{row.index}-"

@@ -13,17 +13,22 @@ its peak heap until it exits (it is reused, not returned to the system), and thr
 malloc arena. Arenas are bound to threads when JAX's backend starts, so call it once at startup,
 before the first JAX computation (the ``octomerge`` CLI does); later it changes nothing and
 warns. The same from outside Python:
-``GLIBC_TUNABLES=glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=2147483647``.
+``GLIBC_TUNABLES=glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=2147483647``;
+``child_env()`` gives that variable to child processes (``octomerge batch``'s local Dask workers).
 Importing the package never does this.
 """
 
 from __future__ import annotations
 
 import ctypes
+import os
 import sys
 import warnings
 
-__all__ = ["reuse_host_memory"]
+__all__ = ["reuse_host_memory", "child_env", "GLIBC_TUNABLES"]
+
+# the same setting for a process started with it in its environment
+GLIBC_TUNABLES = "glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=2147483647"
 
 # glibc <malloc.h>
 _M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8
@@ -60,3 +65,13 @@ def reuse_host_memory() -> bool:
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     _applied = all(mallopt(option, value) == 1 for option, value in _SETTINGS)
     return _applied
+
+
+def child_env(environ=os.environ) -> dict[str, str]:
+    """Environment variables that give child processes (e.g. Dask workers) this process's host
+    memory reuse: ``{"GLIBC_TUNABLES": ...}`` (appended to an existing value) when
+    ``reuse_host_memory()`` is in effect here, else ``{}``."""
+    if not _applied:
+        return {}
+    old = environ.get("GLIBC_TUNABLES", "")
+    return {"GLIBC_TUNABLES": f"{old}:{GLIBC_TUNABLES}" if old else GLIBC_TUNABLES}

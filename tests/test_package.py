@@ -90,3 +90,59 @@ def test_octomerge_command_reuses_host_memory_unless_turned_off(value, applied):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
     assert out.stderr.strip().splitlines()[-1] == str(applied)
     assert "[registration]" in out.stdout  # the command itself ran
+
+
+_CHILD_PROBE = """
+import ctypes, resource
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+def touch_faults(n=96 << 20):
+    p = libc.malloc(n)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    ctypes.memset(p, 1, n)
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+    libc.free(p)
+    return faults
+touch_faults()
+print(touch_faults())
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc setting")
+def test_child_env_gives_workers_the_reuse(monkeypatch):
+    """``child_env`` (what ``octomerge batch`` gives its local Dask workers) carries the setting
+    into a new process: a freed 96 MB block is reused there, as in the parent; empty when the
+    parent did not opt in."""
+    import os
+
+    from octomerge_jax import batch, hostmem
+
+    def faults(env):
+        base = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+        out = subprocess.run([sys.executable, "-c", _CHILD_PROBE], capture_output=True, text=True,
+                             check=True, env={**base, **env})
+        return int(out.stdout)
+
+    monkeypatch.setattr(hostmem, "_applied", False)
+    assert hostmem.child_env() == {}
+    assert faults(hostmem.child_env()) > 10_000
+    monkeypatch.setattr(hostmem, "_applied", True)
+    env = hostmem.child_env({"GLIBC_TUNABLES": "glibc.malloc.tcache_count=0"})
+    assert env == {"GLIBC_TUNABLES": "glibc.malloc.tcache_count=0:" + hostmem.GLIBC_TUNABLES}
+    assert faults(hostmem.child_env({})) < 1_000
+    # the batch runner's own cluster is started with it
+    distributed = pytest.importorskip("distributed")
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_cluster(**kw):
+        seen.update(kw)
+        raise Stop
+
+    monkeypatch.setattr(distributed, "LocalCluster", fake_cluster)
+    with pytest.raises(Stop):
+        batch._run_dask([], {}, None, 2, {}, None, None, False)
+    assert seen["env"] == hostmem.child_env() and seen["processes"]
