@@ -125,7 +125,7 @@ class FuseReport:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             out[f.name] = np.asarray(v).tolist() if f.name != "capacity" else v
-        out["pruned"] = int(np.asarray(self.pruned))
+        out["pruned"] = np.asarray(self.pruned).tolist()  # a list for a vmapped report
         return out
 
 

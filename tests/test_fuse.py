@@ -367,6 +367,9 @@ def test_vmap_over_stacked_pairs():
     B = [b.with_capacity(cap2) for _, b in pairs]
     stack = lambda ms: jax.tree.map(lambda *x: jnp.stack(x), *ms)  # noqa: E731
     out, rep = jax.vmap(lambda a, b: F.fuse(a, b, capacity=4096, return_report=True))(stack(A), stack(B))
+    h = rep.host()  # per pair, as lists
+    assert h["overflow"] == [False] * 3
+    assert h["pruned"] == [r - o for r, o in zip(h["refined_cells"], h["leaves_out"])]
     for i, (a, b) in enumerate(zip(A, B)):
         mi = jax.tree.map(lambda x: x[i], out)
         assert not bool(rep.overflow[i])
