@@ -34,15 +34,13 @@ def test_shipped_example_map_is_the_generated_room():
     assert 0 < occupied < shipped.num_leaves
 
 
-_REUSE_PROBE = """
-import ctypes, resource, sys, warnings
-import octomerge_jax
+# minor faults while writing a freed-then-fresh 96 MB block (printed); no JAX, no octomerge_jax
+_FAULT_PROBE = """
+import ctypes, resource
 libc = ctypes.CDLL("libc.so.6")
 libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
 libc.free.argtypes = [ctypes.c_void_p]
-if sys.argv[1] == "on":
-    assert octomerge_jax.reuse_host_memory() is True
-def touch_faults(n=96 << 20):  # minor faults while writing a fresh 96 MB block
+def touch_faults(n=96 << 20):
     p = libc.malloc(n)
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     ctypes.memset(p, 1, n)
@@ -51,6 +49,14 @@ def touch_faults(n=96 << 20):  # minor faults while writing a fresh 96 MB block
     return faults
 touch_faults()
 print(touch_faults())
+"""
+
+_REUSE_PROBE = """
+import sys, warnings
+import octomerge_jax
+if sys.argv[1] == "on":
+    assert octomerge_jax.reuse_host_memory() is True
+""" + _FAULT_PROBE + """
 import jax.numpy as jnp
 jnp.zeros(3).block_until_ready()
 with warnings.catch_warnings(record=True) as w:
@@ -92,23 +98,6 @@ def test_octomerge_command_reuses_host_memory_unless_turned_off(value, applied):
     assert "[registration]" in out.stdout  # the command itself ran
 
 
-_CHILD_PROBE = """
-import ctypes, resource
-libc = ctypes.CDLL("libc.so.6")
-libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
-libc.free.argtypes = [ctypes.c_void_p]
-def touch_faults(n=96 << 20):
-    p = libc.malloc(n)
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-    ctypes.memset(p, 1, n)
-    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
-    libc.free(p)
-    return faults
-touch_faults()
-print(touch_faults())
-"""
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc setting")
 def test_child_env_gives_workers_the_reuse(monkeypatch):
     """``child_env`` (what ``octomerge batch`` gives its local Dask workers) carries the setting
@@ -120,7 +109,7 @@ def test_child_env_gives_workers_the_reuse(monkeypatch):
 
     def faults(env):
         base = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
-        out = subprocess.run([sys.executable, "-c", _CHILD_PROBE], capture_output=True, text=True,
+        out = subprocess.run([sys.executable, "-c", _FAULT_PROBE], capture_output=True, text=True,
                              check=True, env={**base, **env})
         return int(out.stdout)
 
