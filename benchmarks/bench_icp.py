@@ -120,8 +120,8 @@ def bench_multi(res, ks, repeats):
                 print(f"start yaw {yaw} rad: {name} single run (two stages x 50 iterations) {t:.3f} s, ends "
                       f"{e[0]:.4f} rad / {e[1]:.3f} m off")
         cols = " ".join(f"{'12 x ' + n + ' / ours':>22}" for n in peers)
-        print(f"{'yaw':>4} {'k':>4} {'mode':>10} | {'1st s':>7} {'steady s':>8} {'hyp/s':>7} | {'best rot/m':>17} "
-              f"{'right':>5} | {cols}")
+        print(f"{'yaw':>4} {'k':>4} {'mode':>10} | {'1st s':>7} {'steady s':>8} {'hyp/s':>7} {'basins':>6} | "
+              f"{'best rot/m':>17} {'right':>5} | {cols}")
         for i, k in enumerate(ks):
             for sequential in ((True, False) if i == 0 and yaw == 1.7 else (True,)):
                 f = lambda: icp_mod.icp_multi(p2, p1, T0, resolution=res, yaw_step_rad=2 * np.pi / k,
@@ -131,7 +131,8 @@ def bench_multi(res, ks, repeats):
                 right = sum(errs(m.candidates.T_target_source[j], T12)[0] < 0.05 for j in range(k))
                 ratios = " ".join(f"{v / t:22.2f}" for v in peers.values())
                 mode = "sequential" if sequential else "vmap"
-                print(f"{yaw:4.1f} {k:4d} {mode:>10} | {first:7.2f} {t:8.2f} {k / t:7.1f} | "
+                basins = len(np.unique(np.asarray(m.basin)))
+                print(f"{yaw:4.1f} {k:4d} {mode:>10} | {first:7.2f} {t:8.2f} {k / t:7.1f} {basins:6d} | "
                       f"{e[0]:8.4f}/{e[1]:8.4f} {right:5d} | {ratios}", flush=True)
 
 

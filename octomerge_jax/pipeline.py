@@ -74,7 +74,8 @@ class MergeReport:
       ``num_inliers``, ``rmse`` [m], ``fitness``, ``correspondence_distance`` [m], ...; for
       ``"multi"`` also ``best_index`` (the candidate chosen by map agreement,
       ``rank_by_map_agreement``), ``point_best_index`` (``icp_multi``'s own choice),
-      ``map_loss`` per candidate, ``num_hypotheses``), ``None`` for ``refine="none"``.
+      ``map_loss`` per candidate, ``num_hypotheses``, ``num_basins``: the ICP runs left after
+      merging hypotheses that reached one basin), ``None`` for ``refine="none"``.
     - ``epsilon_r_init``, ``epsilon_t_init``, ``epsilon_r``, ``epsilon_t``: thesis eqs. 7.2 /
       7.3 before / after refinement when ``T_1_2_true`` is given (else ``None``).
     - ``displacement_init``, ``displacement``: mean distance [m] between map 2's occupied leaf
@@ -274,6 +275,7 @@ def _icp_dict(result, refine: str) -> dict:
     if multi:
         out["best_index"] = int(result.best_index)
         out["num_hypotheses"] = int(np.asarray(result.hypotheses).shape[0])
+        out["num_basins"] = int(np.unique(np.asarray(result.basin)).size)
     return out
 
 

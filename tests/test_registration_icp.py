@@ -179,6 +179,36 @@ def test_icp_multi_sequential_equals_batched_on_converged_candidates():
     assert _errors(a.best.T_target_source, T)[0] < 1e-3
 
 
+def test_icp_multi_runs_each_basin_once_and_resumes_exactly():
+    """After each coarse stage, hypotheses that left it within ``basin_tolerance`` of each other
+    go on as one run: copies of a hypothesis (and one 1 mm / 0.1 mrad away) share their leader's
+    result and ``basin`` index; a distinct start keeps its own. With ``basin_tolerance=0``
+    every candidate runs alone, and the staged runs (stopped at each stage's end, resumed)
+    give exactly the single ``icp`` run from the same start."""
+    rng = np.random.default_rng(3)
+    tgt = rng.uniform(-2.0, 2.0, (700, 3)).astype(np.float32)
+    T = xyz_rpy64(0.1, -0.05, 0.02, 0.0, 0.0, 0.15)
+    src = _moved(tgt[:500], np.linalg.inv(T))
+    near = xyz_rpy64(0.001, 0.0, 0.0, 0.0, 0.0, 1e-4)
+    hyps = np.stack([np.eye(4), xyz_rpy64(0, 0, 0, 0, 0, 0.3), np.eye(4), near, xyz_rpy64(0, 0, 0, 0, 0, 2.5)])
+    merged = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True)
+    basin = np.asarray(merged.basin).tolist()
+    assert basin[2] == basin[3] == 0 and basin[4] == 4, basin
+    for i, j in enumerate(basin):
+        for name, leaf in vars(merged.candidates).items():
+            np.testing.assert_array_equal(np.asarray(leaf)[i], np.asarray(leaf)[j], err_msg=name)
+    alone = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True, basin_tolerance=0.0)
+    assert np.asarray(alone.basin).tolist() == list(range(5))
+    for i in (0, 1, 3):  # not the 2.5 rad start: its run (1.8 rad off) is chaotic in float rounding
+        single = icp_mod.icp(src, tgt, hyps[i], resolution=0.1)
+        cand = jax.tree_util.tree_map(lambda a, i=i: a[i], alone.candidates)
+        assert int(cand.num_iterations) == int(single.num_iterations)
+        np.testing.assert_allclose(np.asarray(cand.T_target_source), np.asarray(single.T_target_source), atol=1e-6)
+    assert _errors(merged.candidates.T_target_source[0], T)[0] < 1e-3
+    with pytest.raises(ValueError, match="basin_tolerance"):
+        icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance=-1.0)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("yaw_error", [0.5, 1.7])
 def test_icp_multi_reaches_the_truth_from_large_yaw_errors(yaw_error):

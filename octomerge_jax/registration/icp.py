@@ -165,9 +165,11 @@ class IcpResult:
 @dataclasses.dataclass(frozen=True)
 class IcpMultiResult:
     """``icp_multi`` output: the best candidate, every candidate (leading axis ``k``), the
-    index of the best, the scores (``num_close - rmse / d_floor``, higher is better) and the
-    initial guesses used (``(k, 4, 4)``). Counts and rmse are measured at the returned
-    transforms for every candidate.
+    index of the best, the scores (``num_close - rmse / d_floor``, higher is better), the
+    initial guesses used (``(k, 4, 4)``) and ``basin`` (``(k,)`` int32: the candidate whose
+    run each candidate's result is; ``basin[i] == i`` unless candidate ``i`` left a stage
+    within ``basin_tolerance`` of an earlier one and was merged into it, see ``icp_multi``).
+    Counts and rmse are measured at the returned transforms for every candidate.
 
     Why ``num_close`` (points within ``d_floor / 4``) and not ``num_inliers`` (within
     ``d_floor``): a room turned by pi onto itself fits many points within two voxels, but
@@ -180,6 +182,7 @@ class IcpMultiResult:
     best_index: jax.Array
     scores: jax.Array
     hypotheses: jax.Array
+    basin: jax.Array
 
 
 # ----------------------------------------------------------------------------- host helpers
@@ -356,9 +359,16 @@ def _stage_clouds(src, valid, source_count, dists, downsample: bool):
 
 def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final_epsilon,
               min_inliers, max_iterations: int, anderson: int | None = None,
-              coarse_matching: str = "centroid", two_phase: bool = True):
+              coarse_matching: str = "centroid", two_phase: bool = True, start=None,
+              stop_stage: int | None = None):
     """One registration on padded clouds with pre-built stage grids (vmappable over T_init;
-    pass ``two_phase=False`` under ``vmap``, see ``neighbors.nearest_with_points``)."""
+    pass ``two_phase=False`` under ``vmap``, see ``neighbors.nearest_with_points``).
+
+    Resumable, for ``icp_multi``'s basin merging: ``stop_stage`` (may be traced) returns the loop
+    state ``(T, stage, iteration, done, status)`` as soon as the run leaves that stage (or
+    stops); ``start`` resumes from such a state (``T_init`` is then ignored). A run split at
+    a stage boundary takes exactly the steps of the uninterrupted run, as leaving a stage
+    restarts the acceleration history and the stall count."""
     nearest = partial(neighbors.nearest_with_points, two_phase=two_phase)
     src_sg = jax.lax.stop_gradient(source)
     n = source.shape[0]
@@ -469,13 +479,19 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
                 jnp.where(advance, jnp.inf, E_best), jnp.where(advance, 0, stall).astype(jnp.int32))
 
     def cond(state):
-        return (~state[3]) & (state[2] < max_iterations)
+        go = (~state[3]) & (state[2] < max_iterations)
+        return go if stop_stage is None else go & (state[1] <= stop_stage)
 
-    init = (T0, jnp.int32(0), jnp.int32(0), jnp.bool_(False), jnp.int32(STATUS_MAX_ITERATIONS),
+    if start is None:
+        start = (T0, jnp.int32(0), jnp.int32(0), jnp.bool_(False), jnp.int32(STATUS_MAX_ITERATIONS))
+    T0 = jax.lax.stop_gradient(jnp.asarray(start[0], jnp.float32))
+    init = (T0, *(jnp.asarray(x) for x in start[1:]),
             jnp.zeros((n,), jnp.int32), jnp.zeros((n,), bool), jnp.zeros((n, 3), jnp.float32),
             T0, jnp.bool_(False), jnp.float32(jnp.inf), T0, hist0, hist0, jnp.int32(0), zero6, zero6,
             jnp.float32(jnp.inf), jnp.int32(0))
     state = jax.lax.while_loop(cond, body, init)
+    if stop_stage is not None:
+        return state[:5]
     _, stage, it, done, status, idx, w, match, T = state[:9]
     status = jnp.where(done, status, STATUS_MAX_ITERATIONS).astype(jnp.int32)
     full = tuple(x[-1] for x in clouds)  # the last stage's cloud: the source points
@@ -731,24 +747,66 @@ def _sequential_default() -> bool:
 @partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching",
                                    "sequential"))
 def _icp_multi_padded(source, source_count, target, target_count, hypotheses, dists, epsilon,
-                      final_epsilon, min_inliers, *, max_iterations: int, cell_capacity: int,
+                      final_epsilon, min_inliers, basin_tolerance, *, max_iterations: int, cell_capacity: int,
                       table_sizes: tuple[int, ...], coarse_matching: str, sequential: bool = False):
     source, target, hyps_c, uncentre = _centered(source, source_count, target, target_count, hypotheses)
     grids = _build(target, target_count, dists, table_sizes, cell_capacity)
-    run = lambda T: _icp_core(source, source_count, target, grids, T, dists, epsilon, final_epsilon,  # noqa: E731
-                              min_inliers, max_iterations, coarse_matching=coarse_matching,
-                              two_phase=sequential)
+    run = partial(_icp_core, source, source_count, target, grids, dists=dists, epsilon=epsilon,
+                  final_epsilon=final_epsilon, min_inliers=min_inliers, max_iterations=max_iterations,
+                  coarse_matching=coarse_matching, two_phase=sequential)
     # sequential (lax.map): each hypothesis stops at its own convergence and skips work per
     # block; vmap runs every hypothesis until the slowest stops and computes both sides of every
     # data-dependent branch - on a GPU the batch runs in parallel, on a CPU it does not
-    cands = _uncentre_result(jax.lax.map(run, hyps_c) if sequential else jax.vmap(run)(hyps_c), uncentre)
-    # every field batched along k (a constant field comes out of vmap unbatched)
+    def each(f, *xs):
+        return jax.lax.map(lambda a: f(*a), xs) if sequential else jax.vmap(f)(*xs)
+
     k = hyps_c.shape[0]
+    # every stage for every hypothesis still running, but after each stage but the last one run
+    # per basin: runs that left the stage within ``basin_tolerance`` metres of each other (every
+    # source point displaced less) go on as one and share its result
+    radius = jnp.sqrt(jnp.max(jnp.where(jnp.arange(source.shape[0]) < source_count,
+                                        jnp.sum(jax.lax.stop_gradient(source) ** 2, -1), 0.0)))
+    owner = jnp.arange(k, dtype=jnp.int32)
+    state = (hyps_c, jnp.zeros((k,), jnp.int32), jnp.zeros((k,), jnp.int32), jnp.zeros((k,), bool),
+             jnp.full((k,), STATUS_MAX_ITERATIONS, jnp.int32))
+
+    def through_stage(stop, carry):  # one loop for every coarse stage (one copy of the ICP loop to compile)
+        state, owner = carry
+        state = each(lambda *st: run(st[0], start=st, stop_stage=stop), *state)
+        basin = _basins(state[0], ~state[3] & (state[2] < max_iterations), radius, basin_tolerance)
+        return (*state[:3], state[3] | (basin != jnp.arange(k)), state[4]), basin[owner]
+
+    state, owner = jax.lax.fori_loop(0, dists.shape[0] - 1, through_stage, (state, owner))
+    cands = each(lambda *st: run(st[0], start=st), *state)
+    cands = jax.tree_util.tree_map(lambda a: a[owner] if a.ndim else a, cands)
+    cands = _uncentre_result(cands, uncentre)
+    # every field batched along k (a constant field comes out of vmap unbatched)
     cands = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k,)) if a.ndim == 0 else a, cands)
     scores = cands.num_close.astype(jnp.float32) - cands.rmse / dists[-1]
     best = jnp.argmax(scores).astype(jnp.int32)
     best_res = jax.tree_util.tree_map(lambda a: a[best], cands)
-    return IcpMultiResult(best_res, cands, best, scores, hypotheses)
+    return IcpMultiResult(best_res, cands, best, scores, hypotheses, owner)
+
+
+def _basins(T, running, radius, tolerance):
+    """``(k,)`` int32: for each of ``k`` transforms ``T (k, 4, 4)`` (centred frames), the first
+    running one whose displacement of points within ``radius`` [m] of the origin,
+    ``angle(R_i^T R_j) * radius + |t_i - t_j|``, is below ``tolerance`` [m] among the basins'
+    leaders (greedy in order, so every leader is a running transform and ``basin[j] == j``);
+    itself for a stopped one."""
+    T = jax.lax.stop_gradient(T)
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    cos = (jnp.einsum("iab,jab->ij", R, R) - 1.0) * 0.5
+    angle = jnp.arccos(jnp.clip(cos, -1.0, 1.0))
+    close = angle * radius + jnp.linalg.norm(t[:, None] - t[None], axis=-1) < tolerance
+    k = T.shape[0]
+
+    def step(i, basin):
+        lead = (basin == jnp.arange(k)) & running & (jnp.arange(k) < i)
+        hit = close[i] & lead
+        return basin.at[i].set(jnp.where(running[i] & jnp.any(hit), jnp.argmax(hit), i).astype(jnp.int32))
+
+    return jax.lax.fori_loop(0, k, step, jnp.arange(k, dtype=jnp.int32))
 
 
 def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resolution: float,
@@ -758,7 +816,8 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
               transformation_epsilon: float | None = None, max_iterations: int = 100,
               cell_capacity: int = 8, min_inliers: int = 6, swap_larger: bool = True,
               coarse_matching: str = "centroid", source_count=None,
-              target_count=None, sequential: bool | None = None) -> IcpMultiResult:
+              target_count=None, sequential: bool | None = None,
+              basin_tolerance: float | None = None) -> IcpMultiResult:
     """Multi-hypothesis ICP: ``icp`` from many initial guesses sharing one set of target
     grids, in one jitted call (see ``sequential``); returns the best by the number of source
     points within a quarter of the floor distance, ties broken by inlier rmse
@@ -767,6 +826,15 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
     ``hypotheses``: ``(k, 4, 4)`` absolute initial guesses ``T_target_source``; by default
     ``default_hypotheses(T_target_source_init, centroid of T_init * source, yaw_step_rad,
     roll_pitch_offset_rad)`` (12 yaws + 4 roll/pitch offsets = 16). Other arguments as ``icp``.
+
+    ``basin_tolerance`` [m] (``None``: a quarter of the floor distance, half a voxel at the
+    defaults; 0 turns merging off): after each stage but the last, hypotheses whose
+    transforms displace every source point by less than this from an earlier running
+    hypothesis's (``angle * max source radius + translation difference``) are merged into it:
+    only one of them runs on, and each reports that run's result (``basin``). Many of a yaw
+    grid's hypotheses fall into a few basins on the coarsest stage (12 yaws at 0.2 m on the
+    benchmark pair: 6-7 runs after it, 16-28 % less time). The staged runs take exactly the
+    steps of uninterrupted ones.
 
     ``sequential``: run the hypotheses one after another (``lax.map``) instead of as one
     ``vmap`` batch; default: sequential on CPU backends (3x faster there: 12 hypotheses at
@@ -795,12 +863,17 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
     if swap:
         s, sc, t, tc = t, tc, s, sc
         hyps = rigid.inverse(hyps)
+    if basin_tolerance is None:
+        basin_tolerance = float(dists[-1]) / 4.0
+    elif not np.isfinite(basin_tolerance) or basin_tolerance < 0:
+        raise ValueError(f"basin_tolerance must be a finite number >= 0 [m], got {basin_tolerance!r}")
     out = _icp_multi_padded(s, sc, t, tc, hyps, dists, eps, eps * 0.01, jnp.asarray(min_inliers, jnp.int32),
+                            jnp.float32(basin_tolerance),
                             max_iterations=int(max_iterations), cell_capacity=int(cell_capacity),
                             table_sizes=neighbors.level_table_sizes(t.shape[0], np.asarray(dists)),
                             coarse_matching=coarse_matching,
                             sequential=_sequential_default() if sequential is None else bool(sequential))
     if swap:
         out = IcpMultiResult(_invert_result(out.best), _invert_result(out.candidates), out.best_index,
-                             out.scores, rigid.inverse(out.hypotheses))
+                             out.scores, rigid.inverse(out.hypotheses), out.basin)
     return out
