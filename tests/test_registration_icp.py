@@ -207,6 +207,8 @@ def test_icp_multi_runs_each_basin_once_and_resumes_exactly():
     assert _errors(merged.candidates.T_target_source[0], T)[0] < 1e-3
     with pytest.raises(ValueError, match="basin_tolerance"):
         icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance=-1.0)
+    with pytest.raises(ValueError, match="basin_tolerance"):
+        icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance="half a voxel")
 
 
 @pytest.mark.slow

@@ -665,6 +665,14 @@ def _options(resolution, max_correspondence_distance, min_correspondence_distanc
     return jnp.asarray(dists), jnp.float32(eps)
 
 
+def _number(x) -> float:
+    """``float(x)``, or NaN for anything that is not a real number (rejected by the caller)."""
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
 def _check_T(T, name):
     if _is_traced(T):
         return jnp.asarray(T, jnp.float32)
@@ -863,12 +871,11 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
     if swap:
         s, sc, t, tc = t, tc, s, sc
         hyps = rigid.inverse(hyps)
-    if basin_tolerance is None:
-        basin_tolerance = float(dists[-1]) / 4.0
-    elif not np.isfinite(basin_tolerance) or basin_tolerance < 0:
+    tol = float(dists[-1]) / 4.0 if basin_tolerance is None else _number(basin_tolerance)
+    if not (np.isfinite(tol) and tol >= 0):
         raise ValueError(f"basin_tolerance must be a finite number >= 0 [m], got {basin_tolerance!r}")
     out = _icp_multi_padded(s, sc, t, tc, hyps, dists, eps, eps * 0.01, jnp.asarray(min_inliers, jnp.int32),
-                            jnp.float32(basin_tolerance),
+                            jnp.float32(tol),
                             max_iterations=int(max_iterations), cell_capacity=int(cell_capacity),
                             table_sizes=neighbors.level_table_sizes(t.shape[0], np.asarray(dists)),
                             coarse_matching=coarse_matching,
