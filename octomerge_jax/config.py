@@ -69,10 +69,11 @@ class RegistrationConfig:
       schedule (``None``: 10 and 2 voxels), halved by ``shrink_factor`` each time the change of
       the transform falls below ``transformation_epsilon`` (``None``: resolution / 60).
     - ``max_iterations``, ``min_inliers``, ``cell_capacity``: ICP limits (see ``registration.icp``).
-    - ``coarse_matching``: ICP's coarse stages: ``"centroid"`` (source points to the target's
-      voxel-grid centroids; the default), ``"symmetric"`` (both clouds' centroids: several times
-      fewer queries, on the benchmark pair 0.0008 instead of 0.015 rad at 0.05-0.1 m, not yet the
-      default) or ``"nearest"`` (Open3D's fixed point). See ``registration.icp``.
+    - ``coarse_matching``: ICP's coarse stages: ``"centroid"`` (every 4th source point, from
+      8192 points up, to the target's voxel-grid centroids; the default), ``"symmetric"`` (both
+      clouds' centroids: on the benchmark pair 0.0008 instead of 0.015 rad at 0.05-0.1 m, not
+      the default: it loses basins at coarse cells) or ``"nearest"`` (Open3D's fixed point).
+      See ``registration.icp``.
     - ``yaw_step_rad``, ``roll_pitch_offset_rad``: hypotheses of ``refine="multi"``.
     - ``on_not_converged``: ICP stopped at ``max_iterations``: ``"warn"`` (use its transform,
       report ``converged = false``), ``"error"`` (fail) or ``"use_initial"`` (merge with the

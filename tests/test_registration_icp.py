@@ -259,6 +259,27 @@ def test_no_worse_than_small_gicp_on_exact_lattice_grid(scene):
         assert o_rot <= s_rot + 1e-3 and o_tr <= s_tr + 1e-3, (e, o_rot, o_tr, s_rot, s_tr)
 
 
+@pytest.mark.parametrize("count, k", [(1500, 1), (4095, 1), (4096, 2), (7000, 3), (9000, 4), (16384, 4)])
+def test_coarse_stages_query_every_kth_point(count, k):
+    """Coarse stages (not "symmetric") query every k-th valid source point, packed to the
+    front with weight 1, k = min(4, count // 2048); the last stage every point."""
+    rng = np.random.default_rng(count)
+    src = jnp.asarray(rng.uniform(-5.0, 5.0, (16384, 3)).astype(np.float32))
+    valid = jnp.arange(16384) < count
+    src = jnp.where(valid[:, None], src, 0.0)
+    dists = jnp.asarray([2.0, 1.0, 0.4], jnp.float32)
+    pts, w, cnt = icp_mod._stage_clouds(src, valid, count, dists, False)
+    assert pts.shape == (3, 16384, 3) and w.shape == (3, 16384)
+    m = -(-count // k)
+    for s in (0, 1):
+        assert int(cnt[s]) == m
+        np.testing.assert_array_equal(np.asarray(pts[s, :m]), np.asarray(src)[:count:k])
+        assert np.all(np.asarray(w[s, :m]) == 1) and np.all(np.asarray(w[s, m:]) == 0)
+    assert int(cnt[2]) == count
+    np.testing.assert_array_equal(np.asarray(pts[2]), np.asarray(src))
+    np.testing.assert_array_equal(np.asarray(w[2]), np.asarray(valid, np.float32))
+
+
 def test_voxel_downsample_matches_numpy():
     rng = np.random.default_rng(3)
     pts = rng.uniform(-1.0, 1.0, (500, 3)).astype(np.float32)
