@@ -54,7 +54,7 @@ where ``"centroid"`` is exact; at 0.2 m 0.026 rad, at 0.1 m exact; these figures
 coarse stages that queried every source point).
 
 **Coarse queries.** With ``"centroid"`` and ``"nearest"`` the coarse stages query every k-th
-source point, ``k = min(4, count // 2048)`` (Open3D's ``uniform_down_sample``; at least one
+source point, ``k = clip(count // 2048, 1, 4)`` (Open3D's ``uniform_down_sample``; at least one
 2048-query block is kept, fewer would not save a block), the last stage every point. Unlike
 ``"symmetric"`` the energy stays a mean over real source points (no smoothing), so the basins
 hardly move: ``icp_multi`` from 0.5 and 1.7 rad on the benchmark pair finds the right
