@@ -268,16 +268,18 @@ def test_coarse_stages_query_every_kth_point(count, k):
     valid = jnp.arange(16384) < count
     src = jnp.where(valid[:, None], src, 0.0)
     dists = jnp.asarray([2.0, 1.0, 0.4], jnp.float32)
-    pts, w, cnt = icp_mod._stage_clouds(src, valid, count, dists, False)
-    assert pts.shape == (3, 16384, 3) and w.shape == (3, 16384)
+    clouds = icp_mod._stage_clouds(src, valid, count, dists, False)
+    stage = [icp_mod._stage_cloud(clouds, jnp.int32(s), 2) for s in range(3)]
+    assert all(p.shape == (16384, 3) and w.shape == (16384,) for p, w, _ in stage)
     m = -(-count // k)
-    for s in (0, 1):
-        assert int(cnt[s]) == m
-        np.testing.assert_array_equal(np.asarray(pts[s, :m]), np.asarray(src)[:count:k])
-        assert np.all(np.asarray(w[s, :m]) == 1) and np.all(np.asarray(w[s, m:]) == 0)
-    assert int(cnt[2]) == count
-    np.testing.assert_array_equal(np.asarray(pts[2]), np.asarray(src))
-    np.testing.assert_array_equal(np.asarray(w[2]), np.asarray(valid, np.float32))
+    for pts, w, cnt in stage[:2]:
+        assert int(cnt) == m
+        np.testing.assert_array_equal(np.asarray(pts[:m]), np.asarray(src)[:count:k])
+        assert np.all(np.asarray(w[:m]) == 1) and np.all(np.asarray(w[m:]) == 0)
+    pts, w, cnt = stage[2]
+    assert int(cnt) == count
+    np.testing.assert_array_equal(np.asarray(pts), np.asarray(src))
+    np.testing.assert_array_equal(np.asarray(w), np.asarray(valid, np.float32))
 
 
 def test_voxel_downsample_matches_numpy():

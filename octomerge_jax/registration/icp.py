@@ -373,10 +373,11 @@ def _every_kth(src, source_count):
 
 
 def _stage_clouds(src, valid, source_count, dists, downsample: bool):
-    """Per stage, the source cloud its iterations query: ``(points (S, n, 3), weights (S, n),
-    counts (S,))``. Coarse stages (all but the last) use the source's voxel-grid centroids
-    at ``d / 2`` weighted by their point counts when ``downsample``, else every k-th point
-    (``_every_kth``); the last stage the points."""
+    """The source clouds the stages query: ``(points (S, n, 3), weights (S, n), counts (S,))``,
+    the last entry the points (the last stage's cloud). Coarse stages (all but the last) use
+    the source's voxel-grid centroids at ``d / 2`` weighted by their point counts when
+    ``downsample`` (one entry per stage), else every k-th point (``_every_kth``, one entry
+    for all). ``_stage_cloud`` picks a stage's."""
     num_stages = dists.shape[0]
     full = (src, valid.astype(src.dtype), jnp.asarray(source_count, jnp.int32))
     if num_stages == 1:
@@ -384,8 +385,15 @@ def _stage_clouds(src, valid, source_count, dists, downsample: bool):
     if downsample:
         coarse = [_voxel_downsample(src, valid, dists[s] * 0.5) for s in range(num_stages - 1)]
     else:
-        coarse = [_every_kth(src, source_count)] * (num_stages - 1)
+        coarse = [_every_kth(src, source_count)]
     return tuple(jnp.stack([p[i] for p in coarse + [full]]) for i in range(3))
+
+
+def _stage_cloud(clouds, stage, last_stage: int):
+    """Stage ``stage``'s ``(points (n, 3), weights (n,), count)`` of ``_stage_clouds``."""
+    num = clouds[0].shape[0]
+    i = jnp.where(stage == last_stage, num - 1, jnp.minimum(stage, num - 2))
+    return clouds[0][i], clouds[1][i], clouds[2][i]
 
 
 def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final_epsilon,
@@ -417,8 +425,7 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
     clouds = _stage_clouds(src_sg, valid, source_count, dists, coarse_matching == "symmetric")
 
     def cloud(stage):
-        i = jnp.minimum(stage, clouds[0].shape[0] - 1)
-        return clouds[0][i], clouds[1][i], clouds[2][i]
+        return _stage_cloud(clouds, stage, last_stage)
 
     def correspond(T, stage, queries):
         # coarse stages: the nearest sub-cell centroid of the stage's grid ("centroid",
