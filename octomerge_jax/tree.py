@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import morton
+from ._sort import lexsort_rows
 from .map import OccupancyMap, OccupancyParams, _build, bucket_capacity
 
 __all__ = [
@@ -348,9 +349,10 @@ def _plan_updates(m: OccupancyMap, words, valid):
     code = jnp.where(valid[:, None], words, jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
     order = jnp.arange(n, dtype=jnp.int32)
     presorted = jnp.all(~morton.words_less(code[1:], code[:-1]))
-    hi, lo, order = jax.lax.cond(  # the identity is the stable sort of sorted rows
-        presorted, lambda: (code[:, 0], code[:, 1], order),
-        lambda: jax.lax.sort((code[:, 0], code[:, 1], order), num_keys=2, is_stable=True))
+    order = jax.lax.cond(  # the identity is the stable sort of sorted rows
+        presorted, lambda: order,
+        lambda: lexsort_rows(((code[:, 0], morton.WORD_BITS + 1), (code[:, 1], morton.WORD_BITS))))
+    hi, lo = code[order, 0], code[order, 1]
     code = jnp.stack([hi, lo], axis=-1)
     valid_sorted = hi < morton.SENTINEL_HI
     prev = _shift_down(code, 1, -1)

@@ -30,6 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._sort import lexsort_rows
+
 __all__ = ["HashGrid", "build_grid", "build_grids", "nearest", "nearest_with_points", "any_within", "grid_table_size",
            "level_table_sizes"]
 
@@ -143,7 +145,8 @@ def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, 
         octant = (sub[:, 0] & 1) | ((sub[:, 1] & 1) << 1) | ((sub[:, 2] & 1) << 2)
         # one key for (bucket, octant) (tables stay below 2^28 buckets): a sort with fewer
         # keys is ~1.4x faster on XLA:CPU
-        sbo, sc, order = jax.lax.sort((bucket * 8 + octant, cell_id, rows), num_keys=2)
+        order = lexsort_rows(((bucket * 8 + octant, table_size.bit_length() + 3), (cell_id, 31)))
+        sbo, sc = (bucket * 8 + octant)[order], cell_id[order]
         sb = jnp.right_shift(sbo, 3)
         seg_start = jnp.concatenate([jnp.ones((1,), bool), (sbo[1:] != sbo[:-1]) | (sc[1:] != sc[:-1])])
         seg = jnp.cumsum(seg_start.astype(jnp.int32)) - 1
@@ -155,9 +158,15 @@ def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, 
         rank = seg - seg[first]
         entry = seg_start
     else:
-        # pseudo-random tie-break so that full buckets keep a spatially uniform subset
-        rnd = ((rows.astype(jnp.uint32) * np.uint32(2654435761)) >> 1).astype(jnp.int32)
-        sb, _, order = jax.lax.sort((bucket, rnd, rows), num_keys=2)
+        # pseudo-random order within a bucket, so that full buckets keep a spatially uniform
+        # subset: a multiplicative scramble of the rows (a permutation when n is a power of two)
+        scramble = rows.astype(jnp.uint32) * np.uint32(2654435761)
+        if n & (n - 1) == 0:
+            order = lexsort_rows(((bucket, table_size.bit_length()),),
+                                 first=(scramble & np.uint32(n - 1)).astype(jnp.int32))
+        else:
+            order = lexsort_rows(((bucket, table_size.bit_length()), (scramble >> 1, 31)))
+        sb = bucket[order]
         value = safe[order]
         is_start = jnp.concatenate([jnp.ones((1,), bool), sb[1:] != sb[:-1]])
         rank = rows - jax.lax.cummax(jnp.where(is_start, rows, 0), axis=0)
