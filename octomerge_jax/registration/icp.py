@@ -536,11 +536,9 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
     if clouds[0].shape[0] > 1:
         # stopped on a coarse stage (max_iterations): its correspondences name centroids;
         # the derivative below needs the source points' own, at that stage
-        _, idx_p, w_p, match_p = correspond(T, stage, full)
-        on_points = stage == last_stage
-        idx = jnp.where(on_points, idx, idx_p)
-        w = jnp.where(on_points, w, w_p)
-        match = jnp.where(on_points, match, match_p)
+        # (a cond: the usual stop, at the last stage, skips this full-cloud query)
+        idx, w, match = jax.lax.cond(stage == last_stage, lambda: (idx, w, match),
+                                     lambda: correspond(T, stage, full)[1:])
 
     # final report at the returned transform and the floor distance (a common yardstick, so
     # that icp_multi can rank candidates that stopped at different stages)
