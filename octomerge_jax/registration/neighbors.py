@@ -143,8 +143,7 @@ def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, 
         # cell/2, as PCL's VoxelGrid in the thesis code); a cell has at most 8 of them
         cell_id = _hash(cells, jnp.int32(0x7FFFFFFF))  # separates colliding cells of a bucket
         octant = (sub[:, 0] & 1) | ((sub[:, 1] & 1) << 1) | ((sub[:, 2] & 1) << 2)
-        # one key for (bucket, octant) (tables stay below 2^28 buckets): a sort with fewer
-        # keys is ~1.4x faster on XLA:CPU
+        # (bucket, octant) as one key (tables stay below 2^28 buckets), then the cell
         order = lexsort_rows(((bucket * 8 + octant, table_size.bit_length() + 3), (cell_id, 31)))
         sbo, sc = (bucket * 8 + octant)[order], cell_id[order]
         sb = jnp.right_shift(sbo, 3)
