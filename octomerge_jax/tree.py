@@ -349,12 +349,14 @@ def _plan_updates(m: OccupancyMap, words, valid):
     code = jnp.where(valid[:, None], words, jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
     order = jnp.arange(n, dtype=jnp.int32)
     presorted = jnp.all(~morton.words_less(code[1:], code[:-1]))
-    order = jax.lax.cond(  # the identity is the stable sort of sorted rows
-        presorted, lambda: order,
-        lambda: lexsort_rows(((code[:, 0], morton.WORD_BITS + 1), (code[:, 1], morton.WORD_BITS))))
-    hi, lo = code[order, 0], code[order, 1]
-    code = jnp.stack([hi, lo], axis=-1)
-    valid_sorted = hi < morton.SENTINEL_HI
+
+    def sort_rows():
+        o = lexsort_rows(((code[:, 0], morton.WORD_BITS + 1), (code[:, 1], morton.WORD_BITS)))
+        return o, code[o]
+
+    # the identity is the stable sort of sorted rows (no gather on insert's presorted path)
+    order, code = jax.lax.cond(presorted, lambda: (order, code), sort_rows)
+    valid_sorted = code[:, 0] < morton.SENTINEL_HI
     prev = _shift_down(code, 1, -1)
     seg_start = ~morton.words_equal(code, prev)
     row, known = lookup_words(m, code)

@@ -144,8 +144,9 @@ def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, 
         cell_id = _hash(cells, jnp.int32(0x7FFFFFFF))  # separates colliding cells of a bucket
         octant = (sub[:, 0] & 1) | ((sub[:, 1] & 1) << 1) | ((sub[:, 2] & 1) << 2)
         # (bucket, octant) as one key (tables stay below 2^28 buckets), then the cell
-        order = lexsort_rows(((bucket * 8 + octant, table_size.bit_length() + 3), (cell_id, 31)))
-        sbo, sc = (bucket * 8 + octant)[order], cell_id[order]
+        bucket_octant = bucket * 8 + octant
+        order = lexsort_rows(((bucket_octant, table_size.bit_length() + 3), (cell_id, 31)))
+        sbo, sc = bucket_octant[order], cell_id[order]
         sb = jnp.right_shift(sbo, 3)
         seg_start = jnp.concatenate([jnp.ones((1,), bool), (sbo[1:] != sbo[:-1]) | (sc[1:] != sc[:-1])])
         seg = jnp.cumsum(seg_start.astype(jnp.int32)) - 1
