@@ -95,7 +95,10 @@ def level_table_sizes(capacity: int, cell_sizes) -> tuple[int, ...]:
 
 
 def _cells(points, cell_size):
-    return jnp.floor(points / cell_size).astype(jnp.int32)
+    # times the reciprocal, not a division: XLA:CPU turns ``x / h`` into ``x * (1 / h)`` in some
+    # compiled contexts and not in others, which moved boundary points between cells depending
+    # on the block size of a query; a product rounds the same everywhere
+    return jnp.floor(points * (1.0 / cell_size)).astype(jnp.int32)
 
 
 def _hash(cells, mask):
@@ -240,6 +243,7 @@ def build_grid(points, count, cell_size, *, table_size: int, cell_capacity: int 
 
 
 _CHUNK = 2048
+_REDO_CHUNK = 256  # the second phase's blocks: its queries are few near a solution
 
 
 def _nearest_in_rows(xyz, index, rows, q, finite):
@@ -294,7 +298,7 @@ def _near_block(xyz, index, base, mask, origin, dims, dense, h, q):
     27-cell search picks the same slot (ties resolve in the same order)."""
     finite = jnp.all(jnp.isfinite(q), axis=-1)
     q = jnp.where(finite[..., None], q, _FAR)
-    s = q / h
+    s = q * (1.0 / h)  # as _cells
     c = jnp.floor(s)
     f = s - c
     lo = c.astype(jnp.int32) - (f < 0.5).astype(jnp.int32)
@@ -307,26 +311,24 @@ def _near_block(xyz, index, base, mask, origin, dims, dense, h, q):
     return d2, idx, match, sure
 
 
-def _blocked(f, q, count, outs):
-    """Apply the block kernel ``f`` to ``q (n, 3)`` in blocks of ``_CHUNK`` rows, skipping
-    blocks entirely past ``count`` (their rows get ``outs``' fill values)."""
+def _blocked(f, q, count, outs, chunk: int = _CHUNK):
+    """Apply the block kernel ``f`` to ``q (n, 3)`` in blocks of ``chunk`` rows; with ``count``
+    (traced int) only the blocks that hold rows ``< count`` run (a loop of dynamic length, so
+    padding blocks cost nothing), and rows of the blocks past it get ``outs``' fill values."""
     n = q.shape[0]
-    if n <= _CHUNK or n % _CHUNK:
+    if n <= chunk or n % chunk:
         return f(q)
-    blocks = q.reshape(n // _CHUNK, _CHUNK, 3)
     if count is None:
-        out = jax.lax.map(f, blocks)
-    else:
-        def padding(_):
-            return tuple(jnp.full((_CHUNK,) + shape, v, dt) for v, shape, dt in outs)
+        out = jax.lax.map(f, q.reshape(n // chunk, chunk, 3))
+        return tuple(x.reshape((n,) + x.shape[2:]) for x in out)
 
-        def g(args):
-            qb, start = args
-            return jax.lax.cond(start < count, lambda _: f(qb), padding, None)
+    def body(i, acc):
+        res = f(jax.lax.dynamic_slice_in_dim(q, i * chunk, chunk))
+        return tuple(jax.lax.dynamic_update_slice_in_dim(a, r, i * chunk, 0) for a, r in zip(acc, res))
 
-        starts = jnp.arange(n // _CHUNK, dtype=jnp.int32) * _CHUNK
-        out = jax.lax.map(g, (blocks, starts))
-    return tuple(x.reshape((n,) + x.shape[2:]) for x in out)
+    init = tuple(jnp.full((n,) + shape, v, dt) for v, shape, dt in outs)
+    blocks = jnp.clip((jnp.asarray(count, jnp.int32) + chunk - 1) // chunk, 0, n // chunk)
+    return jax.lax.fori_loop(0, blocks, body, init)
 
 
 _FILL = ((jnp.inf, (), jnp.float32), (-1, (), jnp.int32), (0.0, (3,), jnp.float32))
@@ -357,7 +359,7 @@ def nearest_with_points(grid: HashGrid, queries, level=0, count=None, two_phase:
     redo = ~sure if count is None else ~sure & (jnp.arange(n) < count)
     n_redo = jnp.sum(redo).astype(jnp.int32)
     rows = jnp.nonzero(redo, size=n, fill_value=n)[0]
-    d2r, idxr, matchr = _blocked(full, q.at[rows].get(mode="fill", fill_value=_FAR), n_redo, _FILL)
+    d2r, idxr, matchr = _blocked(full, q.at[rows].get(mode="fill", fill_value=_FAR), n_redo, _FILL, _REDO_CHUNK)
     put = lambda a, v: a.at[rows].set(v, mode="drop")  # noqa: E731
     return put(d2, d2r), put(idx, idxr), put(match, matchr)
 
