@@ -53,8 +53,8 @@ def kabsch64(src, dst, w):
 
 def _increment(T, xi):
     """``exp(xi) T`` with ``xi = (rotation vector [rad], translation [m])`` (left perturbation)."""
-    return rigid.from_rotation_translation(icp_mod._so3_exp(xi[:3]) @ T[:3, :3],
-                                           icp_mod._so3_exp(xi[:3]) @ T[:3, 3] + xi[3:])
+    R = icp_mod._so3_exp(xi[:3])
+    return rigid.from_rotation_translation(R @ T[:3, :3], R @ T[:3, 3] + xi[3:])
 
 
 def gauss_newton(src, dst, w, T, iters):
@@ -115,6 +115,14 @@ def gaps(T, T_ref):
     return float(metrics.rotation_angle_error(T, T_ref)), float(metrics.translation_distance(T, T_ref))
 
 
+def shifted(T, a, b):
+    """``T`` re-expressed between frames shifted by ``a`` (source) and ``b`` (target) [m], as
+    ``icp`` centres both clouds: ``shifted(T, cs, ct)`` centres, ``shifted(T, -cs, -ct)`` undoes it."""
+    out = np.array(T, np.float64)
+    out[:3, 3] = out[:3, :3] @ a + out[:3, 3] - b
+    return out
+
+
 def clouds(res):
     P1, P2, T12 = scene_pair(res)
     o = overlap(P1, P2, T12, "bbox")
@@ -132,8 +140,7 @@ def bench_one_solve(res, starts, table):
         w = np.isfinite(d)
         dst = np.where(w[:, None], tgt[np.minimum(j, len(tgt) - 1)], 0.0)
         s, q = src - cs, dst - ct
-        T0c = T0.copy()
-        T0c[:3, 3] = T0[:3, :3] @ cs + T0[:3, 3] - ct
+        T0c = shifted(T0, cs, ct)
         T_ref = kabsch64(s[w], q[w], np.ones(w.sum()))
         args = (jnp.asarray(s, jnp.float32), jnp.asarray(q, jnp.float32), jnp.asarray(w), jnp.asarray(T0c, jnp.float32))
         step = gaps(T0c, T_ref)
@@ -172,16 +179,12 @@ def bench_outer(res, starts, table):
     print(f"(scale: icp from the truth at {res} m: {int(r.num_iterations)} iterations in {t_icp:.2f} s, "
           f"{1e3 * t_icp / max(int(r.num_iterations), 1):.1f} ms per iteration incl. grid build)")
     for yaw, shift in starts:
-        T0 = T12 @ xyz_rpy64(shift, -shift, 0.0, 0.0, 0.0, yaw)
-        T0c = T0.copy()
-        T0c[:3, 3] = T0[:3, :3] @ cs + T0[:3, 3] - ct
+        T0c = shifted(T12 @ xyz_rpy64(shift, -shift, 0.0, 0.0, 0.0, yaw), cs, ct)
         T_fix, n_ref = icp_loop(s, q, T0c, res, table["kabsch (ours)"])
         for name, f in table.items():
             T, n = (T_fix, n_ref) if name == "kabsch (ours)" else icp_loop(s, q, T0c, res, f)
             er, et = gaps(T, T_fix)
-            Tw = T.copy()
-            Tw[:3, 3] = T[:3, 3] - T[:3, :3] @ cs + ct
-            e_true = gaps(Tw, T12)
+            e_true = gaps(shifted(T, -cs, -ct), T12)
             print(f"{res:5.2f} {yaw:6.2f} {shift:6.2f} | {name:>14} {n:6d} {er:10.2e} {et:10.2e} "
                   f"{e_true[0]:9.4f} {e_true[1]:8.4f}", flush=True)
 
