@@ -211,6 +211,12 @@ def pad_points(points, capacity: int | None = None, *, name: str = "points"):
     """Host: ``(n, 3)`` points [m] -> ``(padded (C, 3) float32 jax array, count int32)`` with
     ``C = bucket_capacity(n)`` unless given. Raises ``ValueError`` naming ``name`` on a bad
     shape or non-finite coordinates."""
+    out, n = _pad_host(points, capacity, name)
+    return jnp.asarray(out), jnp.asarray(n, jnp.int32)
+
+
+def _pad_host(points, capacity, name):
+    """``pad_points`` on the host: ``(padded (C, 3) float32 NumPy array, n)``."""
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"{name}: expected shape (n, 3), got {p.shape}")
@@ -222,7 +228,7 @@ def pad_points(points, capacity: int | None = None, *, name: str = "points"):
         raise ValueError(f"{name}: capacity {cap} < {n} points")
     out = np.zeros((cap, 3), np.float32)
     out[:n] = p
-    return jnp.asarray(out), jnp.asarray(n, jnp.int32)
+    return out, n
 
 
 def stage_distances(resolution: float, max_correspondence_distance: float | None = None,
@@ -640,12 +646,11 @@ def icp_padded(source, source_count, target, target_count, T_target_source_init,
     ``vmap`` the one-phase search is the cheaper)."""
     _check_choice(coarse_matching)
     ts = _table_sizes(target.shape[0], dists, table_sizes)
-    epsilon = jnp.asarray(epsilon, jnp.float32)
-    final_epsilon = epsilon * 0.01 if final_epsilon is None else jnp.asarray(final_epsilon, jnp.float32)
+    epsilon = _arg(epsilon, np.float32)
+    final_epsilon = epsilon * np.float32(0.01) if final_epsilon is None else _arg(final_epsilon, np.float32)
     return _icp_padded_jit(source, source_count, target, target_count,
-                           jnp.asarray(T_target_source_init, jnp.float32),
-                           jnp.asarray(dists, jnp.float32), epsilon, final_epsilon,
-                           jnp.asarray(min_inliers, jnp.int32), max_iterations=int(max_iterations),
+                           _arg(T_target_source_init, np.float32), _arg(dists, np.float32), epsilon,
+                           final_epsilon, _arg(min_inliers, np.int32), max_iterations=int(max_iterations),
                            cell_capacity=int(cell_capacity), table_sizes=ts,
                            coarse_matching=coarse_matching, two_phase=bool(two_phase))
 
@@ -680,11 +685,17 @@ def _is_traced(*xs) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in xs)
 
 
+def _arg(x, dtype):
+    """An argument for a jitted call: JAX arrays (and tracers) as they are, anything else as a
+    NumPy array (host values go to the device with the call, not one eager op each)."""
+    return jnp.asarray(x, dtype) if isinstance(x, jax.Array) else np.asarray(x, dtype)
+
+
 def _prepare(points, count, name):
-    """(padded jax (C,3) float32, count, host count or None)."""
+    """(padded (C,3) float32 array, count, host count or None)."""
     if count is None and not _is_traced(points):
-        p, c = pad_points(points, name=name)
-        return p, c, int(c)
+        p, c = _pad_host(points, None, name)
+        return p, np.int32(c), c
     p = jnp.asarray(points, jnp.float32)
     if p.ndim != 2 or p.shape[-1] != 3:
         raise ValueError(f"{name}: expected shape (n, 3), got {p.shape}")
@@ -704,7 +715,7 @@ def _options(resolution, max_correspondence_distance, min_correspondence_distanc
         raise ValueError(f"max_iterations must be >= 1, got {max_iterations!r}")
     if int(cell_capacity) < 1:
         raise ValueError(f"cell_capacity must be >= 1, got {cell_capacity!r}")
-    return jnp.asarray(dists), jnp.float32(eps)
+    return dists, np.float32(eps)
 
 
 def _number(x) -> float:
@@ -718,8 +729,7 @@ def _number(x) -> float:
 def _check_T(T, name):
     if _is_traced(T):
         return jnp.asarray(T, jnp.float32)
-    rigid.check_rigid(T, name)
-    return jnp.asarray(T, jnp.float32)
+    return rigid.check_rigid(T, name).astype(np.float32)
 
 
 def _invert_result(r: IcpResult) -> IcpResult:
@@ -761,7 +771,8 @@ def icp(source, target, T_target_source_init, *, resolution: float,
     kw = dict(max_iterations=int(max_iterations), cell_capacity=int(cell_capacity),
               coarse_matching=coarse_matching)
     if swap_larger and s_host is not None and t_host is not None and s_host > t_host:
-        r = icp_padded(t, tc, s, sc, rigid.inverse(T0), dists, eps, min_inliers=min_inliers, **kw)
+        T0_inv = rigid.inverse(T0) if _is_traced(T0) else np.linalg.inv(np.float64(T0)).astype(np.float32)
+        r = icp_padded(t, tc, s, sc, T0_inv, dists, eps, min_inliers=min_inliers, **kw)
         return _invert_result(r)
     return icp_padded(s, sc, t, tc, T0, dists, eps, min_inliers=min_inliers, **kw)
 
