@@ -175,14 +175,9 @@ def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, 
         rank = rows - jax.lax.cummax(jnp.where(is_start, rows, 0), axis=0)
         entry = jnp.ones((n,), bool)
     keep = entry & (sb < table_size) & (rank < cell_capacity)
-    r = jnp.where(keep, sb, table_size)
-    k = jnp.where(keep, rank, 0)
-    xyz = jnp.full((3, table_size + 1, cell_capacity), _FAR, jnp.float32)
-    xyz = xyz.at[:, r, k].set(value.T).at[:, table_size].set(_FAR)
-    index = jnp.full((table_size + 1, cell_capacity), -1, jnp.int32)
-    index = index.at[r, k].set(order).at[table_size].set(-1)
     overflow = jnp.sum(entry & (sb < table_size) & (rank >= cell_capacity)).astype(jnp.int32)
-    return xyz, index, overflow, origin, dims, dense
+    # the slots to fill: (bucket, rank) of the kept entries, -1 for the others (dropped by the scatter)
+    return jnp.where(keep, sb, -1), jnp.where(keep, rank, 0), value, order, overflow, origin, dims, dense
 
 
 def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 8,
@@ -215,17 +210,23 @@ def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 
 
 @partial(jax.jit, static_argnames=("table_sizes", "cell_capacity", "centroid_levels"))
 def _build_grids_jit(points, count, sizes, *, table_sizes, cell_capacity, centroid_levels):
-    xyzs, idxs, ovs, bases, boxes = [], [], [], [], []
+    rows, slots, values, orders, ovs, bases, boxes = [], [], [], [], [], [], []
     base = 0
     for l, t in enumerate(table_sizes):
-        xyz, index, ov, origin, dims, dense = _build_level(points, count, sizes[l], t, cell_capacity,
-                                                           centroid_levels[l])
-        xyzs.append(xyz), idxs.append(index), ovs.append(ov), bases.append(base)
-        boxes.append((origin, dims, dense))
-        base += t + 1
+        r, k, value, order, ov, origin, dims, dense = _build_level(points, count, sizes[l], t, cell_capacity,
+                                                                   centroid_levels[l])
+        rows.append(jnp.where(r >= 0, base + r, -1)), slots.append(k), values.append(value)
+        orders.append(order), ovs.append(ov), bases.append(base), boxes.append((origin, dims, dense))
+        base += t + 1  # the level's row t is its always-empty sink
+    # one table for all levels, filled by one scatter per array (no per-level tables to concatenate)
+    rows, slots = jnp.concatenate(rows), jnp.concatenate(slots)
+    rows = jnp.where(rows >= 0, rows, base)  # out of bounds: dropped
+    xyz = jnp.full((3, base, cell_capacity), _FAR, jnp.float32).at[:, rows, slots].set(
+        jnp.concatenate(values).T, mode="drop")
+    index = jnp.full((base, cell_capacity), -1, jnp.int32).at[rows, slots].set(jnp.concatenate(orders), mode="drop")
     return HashGrid(
-        xyz=jnp.concatenate(xyzs, axis=1),
-        index=jnp.concatenate(idxs, axis=0),
+        xyz=xyz,
+        index=index,
         base=jnp.asarray(bases, jnp.int32),
         mask=jnp.asarray([t - 1 for t in table_sizes], jnp.int32),
         origin=jnp.stack([b[0] for b in boxes]),
