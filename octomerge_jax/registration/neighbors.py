@@ -12,7 +12,8 @@ so building and querying are plain sorts, scatters and gathers under ``jit``/``v
   uniform subsample); the dropped points are counted in ``overflow`` (a status, not an error).
   Hash collisions only add candidates, never wrong answers: distances are always exact.
 - query: 27 gathers of ``K`` candidates per query point and an exact squared distance; the
-  result is exact (the true nearest neighbour within ``cell_size``) whenever ``overflow == 0``.
+  result is exact (the true nearest neighbour within ``cell_size``; among points whose squared
+  distances agree to a relative ``2^-15``, the first slot) whenever ``overflow == 0``.
   Candidates farther than ``cell_size`` may be returned; callers filter by distance. By default
   in two phases: the 8 cells nearest to the query first, which hold every point within half a
   cell of it, and the 27 only for the queries that this does not settle (same answers; near an
@@ -247,19 +248,39 @@ _CHUNK = 2048
 _REDO_CHUNK = 256  # the second phase's blocks: its queries are few near a solution
 
 
+def _slot_bits(k: int) -> int:
+    """Bits that number the candidate slots of a 27-cell search (``27 K``)."""
+    return int(np.ceil(np.log2(27 * k)))
+
+
 def _nearest_in_rows(xyz, index, rows, q, finite):
     """The nearest stored point to each query ``q (b, 3)`` among the table rows ``rows (b, r)``
     (all ``K`` slots of each): ``(dist2, index, match)``, ``inf`` / ``-1`` when none (or the
-    query is not ``finite``). Ties go to the first slot in ``rows`` order."""
+    query is not ``finite``). Ties go to the first slot in ``rows`` order.
+
+    The slot comes from one integer min over packed keys: a squared distance is >= 0, so its
+    float32 bits order as an int32; their low ``_slot_bits(K)`` bits (8 for ``K = 8``) are
+    replaced by the slot's number, so candidates whose squared distances agree to a relative
+    ``2^-15`` (~1.5e-5 in distance, 6 um at 0.4 m) count as tied and the first slot wins.
+    ``dist2`` is the exact minimum. Instead of a min and then a first-index argmax over the
+    distances: the nearest-neighbour query 1.1-1.35x faster inside a loop (ICP stage grids,
+    10k-180k queries). The 8- and 27-cell searches use the same bits and the same slot order,
+    so they agree. ``K > 37`` (more than 10 bits) uses the exact two-pass form."""
     d2 = 0.0
     for a in range(3):
         pa = xyz[a].at[rows].get(mode="promise_in_bounds")  # (b, r, K)
         d2 = d2 + (pa - q[:, None, None, a]) ** 2
     b, k = q.shape[0], xyz.shape[-1]
-    d2 = d2.reshape(b, rows.shape[1] * k)
-    # min, then the first slot attaining it (= argmin; XLA's CPU argmin reduction is ~2x slower)
-    best = jnp.min(d2, axis=-1)
-    j = jnp.argmax(d2 == best[:, None], axis=-1)
+    bits = _slot_bits(k)
+    if bits <= 10:
+        slot = jnp.arange(rows.shape[1] * k, dtype=jnp.int32).reshape(1, rows.shape[1], k)
+        key = (jax.lax.bitcast_convert_type(d2, jnp.int32) & ~((1 << bits) - 1)) | slot
+        j = jnp.min(key, axis=(1, 2)) & ((1 << bits) - 1)
+        best = jnp.min(d2, axis=(1, 2))
+    else:  # min, then the first slot attaining it (= argmin; XLA's CPU argmin reduction is ~2x slower)
+        d2 = d2.reshape(b, rows.shape[1] * k)
+        best = jnp.min(d2, axis=-1)
+        j = jnp.argmax(d2 == best[:, None], axis=-1)
     row = jnp.take_along_axis(rows, (j // k)[:, None], axis=-1)[:, 0]
     idx = index[row, j % k]
     found = (idx >= 0) & finite
