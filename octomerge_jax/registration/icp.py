@@ -257,13 +257,36 @@ def stage_distances(resolution: float, max_correspondence_distance: float | None
 # ----------------------------------------------------------------------------- kernels
 
 
+def _moments(src, dst, wf, stride: int = 16):
+    """Weighted means ``ms, md (3,)`` and cross-covariance ``H = sum wf (s - ms)(d - md)^T
+    (3, 3)`` of ``src, dst (n, 3)`` [m] with weights ``wf (n,)``, in one pass of 16 scalar
+    sums over columns: XLA:CPU reduced the ``(n, 3)`` arrays along ``n`` (and ran the 3x3
+    ``dot``) 3-4x slower inside the ICP loop (0.1 m pair: ~0.67 -> ~0.15 ms per iteration;
+    8 starts at 0.1 / 0.05 m 0.83 -> 0.69 s, 4.81 -> 4.02 s). The sums are taken about the
+    weighted mean of every ``stride``-th point, so that the one-pass formula keeps float32
+    precision when the inliers lie far from the origin (about the origin, a 2 m patch 100 m
+    away came out 5e-4 rad off; about the reference, within 3e-7 of the float64 solution,
+    as the two-pass form)."""
+    ws = wf[::stride]
+    k = jnp.sum(ws)
+    cs = jnp.where(k > 0, jnp.stack([jnp.sum(src[::stride, i] * ws) for i in range(3)]) / jnp.maximum(k, 1e-30), 0.0)
+    cd = jnp.where(k > 0, jnp.stack([jnp.sum(dst[::stride, i] * ws) for i in range(3)]) / jnp.maximum(k, 1e-30), 0.0)
+    s = [src[:, i] - cs[i] for i in range(3)]
+    d = [dst[:, i] - cd[i] for i in range(3)]
+    a = [s[i] * wf for i in range(3)]
+    sums = [jnp.sum(a[i] * d[j]) for i in range(3) for j in range(3)]
+    sums += [jnp.sum(a[i]) for i in range(3)] + [jnp.sum(wf * d[j]) for j in range(3)] + [jnp.sum(wf)]
+    m = jnp.stack(sums)
+    W = jnp.maximum(m[15], 1e-30)
+    ms, md = m[9:12] / W, m[12:15] / W
+    H = m[:9].reshape(3, 3) - W * jnp.outer(ms, md)
+    return ms + cs, md + cd, H
+
+
 def _kabsch(src, dst, w):
     """Weighted least squares ``argmin_{R,t} sum w |R src + t - dst|^2`` (eq. 3.18), closed form."""
     wf = w.astype(src.dtype)
-    n = jnp.maximum(jnp.sum(wf), 1.0)
-    ms = jnp.sum(wf[:, None] * src, 0) / n
-    md = jnp.sum(wf[:, None] * dst, 0) / n
-    H = ((src - ms) * wf[:, None]).T @ (dst - md)  # (3, 3) = sum w (s - ms)(d - md)^T
+    ms, md, H = _moments(src, dst, wf)
     U, _, Vt = jnp.linalg.svd(H)
     V = Vt.T
     d = jnp.sign(jnp.linalg.det(V @ U.T))
