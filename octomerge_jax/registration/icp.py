@@ -20,10 +20,10 @@ per stage is built once per call and shared by all hypotheses of ``icp_multi``.
 **Why closed form rather than se(3) Gauss-Newton (jaxopt).** For point-to-point residuals the
 Kabsch solution is the exact global minimiser of eq. 3.18 for fixed correspondences, while one
 Gauss-Newton step linearises the rotation. Measured (``benchmarks/bench_icp_solver.py``, room
-pair, warm jitted float32 solves started at the ICP iterate): Kabsch 0.37-0.57 ms at 12k
-source points and 1.1-1.5 ms at 57k; Gauss-Newton on the 6x6 normal equations 2-3.5x that per
-step (0.8-1.2 / 3.3-5.0 ms), jaxopt's ``GaussNewton`` 4-8x per step, ``LevenbergMarquardt``
-(3 steps) 15-29x. One GN step lands 1e-7 to 2e-5 rad from the minimiser (Kabsch in float32: 1e-6 to
+pair, warm jitted float32 solves started at the ICP iterate): Kabsch 0.22-0.30 ms at 12k
+source points and 0.44-0.71 ms at 57k (moments as column sums, ``_moments``); Gauss-Newton on
+the 6x6 normal equations 2.6-8.4x that per step (0.8-1.8 / 3.2-4.9 ms), jaxopt's ``GaussNewton``
+7-12x per step, ``LevenbergMarquardt`` (3 steps) 29-40x. One GN step lands 1e-7 to 2e-5 rad from the minimiser (Kabsch in float32: 1e-6 to
 1e-5). Used as the step of a plain ICP loop (same host kd-tree matches), one or three GN steps
 per iteration reach the same fixed point (within 7e-5 rad / 1.3e-4 m) in as many or more outer
 iterations (0.1 m: 31-34 either way; 0.05 m: 29 -> 31, 95 -> 105-110; jaxopt's LM 25 and 96), and every outer
