@@ -862,7 +862,12 @@ def _icp_multi_padded(source, source_count, target, target_count, hypotheses, di
         return (*state[:3], state[3] | (basin != jnp.arange(k)), state[4]), basin[owner]
 
     state, owner = jax.lax.fori_loop(0, dists.shape[0] - 1, through_stage, (state, owner))
-    cands = each(lambda *st: run(st[0], start=st), *state)
+    # a merged candidate takes its leader's result: skip its final report (two full-cloud queries)
+    # where branches are real (sequential); under vmap the cond computes both sides anyway
+    merged = owner != jnp.arange(k)
+    shapes = jax.eval_shape(lambda *st: run(st[0], start=st), *(x[0] for x in state))
+    dummy = lambda: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)  # noqa: E731
+    cands = each(lambda m, *st: jax.lax.cond(m, dummy, lambda: run(st[0], start=st)), merged, *state)
     cands = jax.tree_util.tree_map(lambda a: a[owner] if a.ndim else a, cands)
     cands = _uncentre_result(cands, uncentre)
     # every field batched along k (a constant field comes out of vmap unbatched)
