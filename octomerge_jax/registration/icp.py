@@ -23,8 +23,8 @@ Gauss-Newton step linearises the rotation. Measured (``benchmarks/bench_icp_solv
 pair, warm jitted float32 solves started at the ICP iterate): Kabsch 0.22-0.30 ms at 12k
 source points and 0.44-0.71 ms at 57k (moments as column sums, ``_moments``); Gauss-Newton on
 the 6x6 normal equations 2.6-8.4x that per step (0.8-1.8 / 3.2-4.9 ms), jaxopt's ``GaussNewton``
-7-12x per step, ``LevenbergMarquardt`` (3 steps) 29-40x. One GN step lands 1e-7 to 2e-5 rad from the minimiser (Kabsch in float32: 1e-6 to
-1e-5). Used as the step of a plain ICP loop (same host kd-tree matches), one or three GN steps
+7-12x per step, ``LevenbergMarquardt`` (3 steps) 29-40x. One GN step lands 1e-7 to 2e-5 rad
+from the minimiser (Kabsch in float32: 1e-6 to 1e-5). Used as the step of a plain ICP loop (same host kd-tree matches), one or three GN steps
 per iteration reach the same fixed point (within 7e-5 rad / 1.3e-4 m) in as many or more outer
 iterations (0.1 m: 31-34 either way; 0.05 m: 29 -> 31, 95 -> 105-110; jaxopt's LM 25 and 96), and every outer
 iteration pays a full nearest-neighbour query (4.3-4.6 ms per ``icp`` iteration at 12k points).
