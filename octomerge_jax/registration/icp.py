@@ -24,10 +24,11 @@ pair, warm jitted float32 solves started at the ICP iterate): Kabsch 0.22-0.30 m
 source points and 0.44-0.71 ms at 57k (moments as column sums, ``_moments``); Gauss-Newton on
 the 6x6 normal equations 2.6-8.4x that per step (0.8-1.8 / 3.2-4.9 ms), jaxopt's ``GaussNewton``
 7-12x per step, ``LevenbergMarquardt`` (3 steps) 29-40x. One GN step lands 1e-7 to 2e-5 rad
-from the minimiser (Kabsch in float32: 1e-6 to 1e-5). Used as the step of a plain ICP loop (same host kd-tree matches), one or three GN steps
-per iteration reach the same fixed point (within 7e-5 rad / 1.3e-4 m) in as many or more outer
-iterations (0.1 m: 31-34 either way; 0.05 m: 29 -> 31, 95 -> 105-110; jaxopt's LM 25 and 96), and every outer
-iteration pays a full nearest-neighbour query (4.3-4.6 ms per ``icp`` iteration at 12k points).
+from the minimiser (Kabsch in float32: 1e-6 to 1e-5). Used as the step of a plain ICP loop
+(same host kd-tree matches), one or three GN steps per iteration reach the same fixed point
+(within 7e-5 rad / 1.3e-4 m) in as many or more outer iterations (0.1 m: 31-34 either way;
+0.05 m: 29 -> 31, 95 -> 105-110; jaxopt's LM 25 and 96), and every outer iteration pays a
+full nearest-neighbour query (an ``icp`` iteration at 12k points: 2.1 ms, grid build included).
 So the closed form is both the cheaper step and the shorter path. jaxopt is not used here.
 
 **Frame independence.** Both clouds are centred on their own centroids before the search
@@ -269,8 +270,12 @@ def _moments(src, dst, wf, stride: int = 16):
     as the two-pass form)."""
     ws = wf[::stride]
     k = jnp.sum(ws)
-    cs = jnp.where(k > 0, jnp.stack([jnp.sum(src[::stride, i] * ws) for i in range(3)]) / jnp.maximum(k, 1e-30), 0.0)
-    cd = jnp.where(k > 0, jnp.stack([jnp.sum(dst[::stride, i] * ws) for i in range(3)]) / jnp.maximum(k, 1e-30), 0.0)
+
+    def reference(x):  # weighted mean of every stride-th row; the origin when none has weight
+        mean = jnp.stack([jnp.sum(x[::stride, i] * ws) for i in range(3)]) / jnp.maximum(k, 1e-30)
+        return jnp.where(k > 0, mean, 0.0)
+
+    cs, cd = reference(src), reference(dst)
     s = [src[:, i] - cs[i] for i in range(3)]
     d = [dst[:, i] - cd[i] for i in range(3)]
     a = [s[i] * wf for i in range(3)]

@@ -212,19 +212,21 @@ def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 
 @partial(jax.jit, static_argnames=("table_sizes", "cell_capacity", "centroid_levels"))
 def _build_grids_jit(points, count, sizes, *, table_sizes, cell_capacity, centroid_levels):
     rows, slots, values, orders, ovs, bases, boxes = [], [], [], [], [], [], []
+    num_rows = sum(t + 1 for t in table_sizes)  # each level's row t is its always-empty sink
     base = 0
     for l, t in enumerate(table_sizes):
         r, k, value, order, ov, origin, dims, dense = _build_level(points, count, sizes[l], t, cell_capacity,
                                                                    centroid_levels[l])
-        rows.append(jnp.where(r >= 0, base + r, -1)), slots.append(k), values.append(value)
-        orders.append(order), ovs.append(ov), bases.append(base), boxes.append((origin, dims, dense))
-        base += t + 1  # the level's row t is its always-empty sink
+        rows.append(jnp.where(r >= 0, base + r, num_rows))  # num_rows: out of bounds, dropped
+        slots.append(k), values.append(value), orders.append(order), ovs.append(ov), bases.append(base)
+        boxes.append((origin, dims, dense))
+        base += t + 1
     # one table for all levels, filled by one scatter per array (no per-level tables to concatenate)
     rows, slots = jnp.concatenate(rows), jnp.concatenate(slots)
-    rows = jnp.where(rows >= 0, rows, base)  # out of bounds: dropped
-    xyz = jnp.full((3, base, cell_capacity), _FAR, jnp.float32).at[:, rows, slots].set(
+    xyz = jnp.full((3, num_rows, cell_capacity), _FAR, jnp.float32).at[:, rows, slots].set(
         jnp.concatenate(values).T, mode="drop")
-    index = jnp.full((base, cell_capacity), -1, jnp.int32).at[rows, slots].set(jnp.concatenate(orders), mode="drop")
+    index = jnp.full((num_rows, cell_capacity), -1, jnp.int32).at[rows, slots].set(
+        jnp.concatenate(orders), mode="drop")
     return HashGrid(
         xyz=xyz,
         index=index,
