@@ -17,7 +17,10 @@ up to m maps, as m robots exploring the same building).
 
 Usage: ``python benchmarks/bench_fuse.py [--sizes small,medium,large] [--repeats 3]``
 Prints a table; compile (first call) is reported apart from the steady-state median
-(``block_until_ready``). Peak memory is the process peak RSS after each row.
+(``block_until_ready``; ``fuse`` with and without pruning called alternately, at least
+``--repeats`` times each and 2 s in all, since a 20 ms call's median over 3 calls swings 1.5x on
+this VM; ``x, IQR``: the anchor ratio at the quartiles of the call times). Peak memory is the
+process peak RSS after each row.
 """
 
 from __future__ import annotations
@@ -125,29 +128,25 @@ def make_pair(shape, seed=0):
     return m1, m2
 
 
-def timed(fn, repeats):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t0)
-    return first, statistics.median(ts)
-
-
-def timed_pair(f, g, repeats):
-    """Steady-state medians of two functions, calls alternated (load drifts on a shared VM)."""
+def timed_pair(f, g, repeats, min_seconds=0.0, spread=False):
+    """Steady-state medians of two functions, calls alternated (load drifts on a shared VM):
+    at least ``repeats`` calls each, more until both together took ``min_seconds`` (a short
+    call's median over 3 calls swings 1.5x here). ``spread``: also each one's (25 %, 75 %)
+    quantiles."""
     jax.block_until_ready(f())
     jax.block_until_ready(g())
     ts = ([], [])
-    for r in range(repeats):
+    r, t_start = 0, time.perf_counter()
+    while r < repeats or time.perf_counter() - t_start < min_seconds:
         for k in ((0, 1) if r % 2 == 0 else (1, 0)):
             t0 = time.perf_counter()
             jax.block_until_ready((f, g)[k]())
             ts[k].append(time.perf_counter() - t0)
-    return statistics.median(ts[0]), statistics.median(ts[1])
+        r += 1
+    med = statistics.median(ts[0]), statistics.median(ts[1])
+    if not spread:
+        return med
+    return med, tuple(tuple(np.quantile(t, (0.25, 0.75))) for t in ts)
 
 
 def peak_rss_gb():
@@ -163,22 +162,28 @@ def bench_pairs(sizes, repeats):
     print("\n## fuse(m1, m2): two overlapping crops, m2 max-likelihood (coarser pruned)")
     hdr = (f"{'size':>7} {'n1':>9} {'n2':>9} {'refined':>9} {'out':>9} {'cap':>9} "
            f"{'compile s':>9} {'merge s':>8} {'+prune s':>8} {'Mleaf/s':>8} {'anchor':>12} "
-           f"{'x anchor':>8} {'peakGB':>6}")
+           f"{'x anchor':>8} {'x, IQR':>11} {'peakGB':>6}")
     print(hdr)
     for name in sizes:
         m1, m2 = make_pair(SIZES[name])
         _, rep = F.fuse(m1, m2, return_report=True)  # host capacity planning
         cap = omap.bucket_capacity(int(rep.refined_cells))  # the refinement's own bucket
-        first, total = timed(lambda: F.fuse(m1, m2, capacity=cap).code, repeats)
+        jax.clear_caches()  # the planning call above may have compiled this capacity already
+        t0 = time.perf_counter()
+        jax.block_until_ready(F.fuse(m1, m2, capacity=cap).code)
+        first = time.perf_counter() - t0
+        (total, merge), (q_total, _) = timed_pair(
+            lambda: F.fuse(m1, m2, capacity=cap).code,
+            lambda: F.fuse(m1, m2, capacity=cap, prune=False).code, repeats, min_seconds=2.0, spread=True)
         compile_s = first - total
-        _, merge = timed(lambda: F.fuse(m1, m2, capacity=cap, prune=False).code, repeats)
         n = m1.num_leaves + m2.num_leaves
         rate = n / total
         a_rate, a_n = anchor_rate(n)
+        x_lo, x_hi = (n / q / a_rate for q in q_total[::-1])  # x anchor at the 75 % / 25 % quantile times
         print(f"{name:>7} {m1.num_leaves:>9} {m2.num_leaves:>9} {int(rep.refined_cells):>9} "
               f"{int(rep.leaves_out):>9} {cap:>9} {compile_s:>9.2f} {merge:>8.3f} "
               f"{total - merge:>8.3f} {rate / 1e6:>8.2f} {f'{a_rate / 1e6:.2f}@{a_n / 1e6:.1f}M':>12} "
-              f"{rate / a_rate:>8.2f} {peak_rss_gb():>6.2f}", flush=True)
+              f"{rate / a_rate:>8.2f} {x_lo:>5.2f}-{x_hi:<5.2f} {peak_rss_gb():>6.2f}", flush=True)
     print(f"load average {os.getloadavg()[0]:.2f}")
 
 
