@@ -211,6 +211,26 @@ def test_icp_multi_runs_each_basin_once_and_resumes_exactly():
         icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance="half a voxel")
 
 
+def test_coarse_stages_on_a_smaller_cloud_resume_exactly():
+    """A source of 5000 points (8192 rows) runs its coarse stages on a 4096-row query cloud
+    (every 2nd point) and its last stage on all points, in two loops: the run recovers the
+    transform, and ``icp_multi``'s staged runs (stopped after each coarse stage, resumed on
+    the last stage's loop alone) take exactly its steps."""
+    rng = np.random.default_rng(5)
+    tgt = rng.uniform(-3.0, 3.0, (7000, 3)).astype(np.float32)
+    T = xyz_rpy64(0.15, -0.1, 0.03, 0.01, 0.0, 0.1)
+    src = _moved(tgt[:5000], np.linalg.inv(T))
+    assert icp_mod.pad_points(src)[0].shape[0] == 8192 and icp_mod._coarse_rows(8192, False) == 4096
+    hyps = np.stack([np.eye(4), xyz_rpy64(0.05, 0, 0, 0, 0, -0.05)])
+    multi = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance=0.0)
+    for i in range(2):
+        single = icp_mod.icp(src, tgt, hyps[i], resolution=0.1)
+        cand = jax.tree_util.tree_map(lambda a, i=i: a[i], multi.candidates)
+        assert int(cand.num_iterations) == int(single.num_iterations)
+        np.testing.assert_allclose(np.asarray(cand.T_target_source), np.asarray(single.T_target_source), atol=1e-6)
+        assert _errors(single.T_target_source, T)[0] < 1e-4 and _errors(single.T_target_source, T)[1] < 1e-4
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("yaw_error", [0.5, 1.7])
 def test_icp_multi_reaches_the_truth_from_large_yaw_errors(yaw_error):
@@ -262,24 +282,32 @@ def test_no_worse_than_small_gicp_on_exact_lattice_grid(scene):
 @pytest.mark.parametrize("count, k", [(1500, 1), (4095, 1), (4096, 2), (7000, 3), (9000, 4), (16384, 4)])
 def test_coarse_stages_query_every_kth_point(count, k):
     """Coarse stages (not "symmetric") query every k-th valid source point, packed to the
-    front with weight 1, k = min(4, count // 2048); the last stage every point."""
+    front of a quarter of the source's rows (at least two query blocks) with weight 1,
+    k = min(4, count // 2048)."""
     rng = np.random.default_rng(count)
     src = jnp.asarray(rng.uniform(-5.0, 5.0, (16384, 3)).astype(np.float32))
     valid = jnp.arange(16384) < count
     src = jnp.where(valid[:, None], src, 0.0)
     dists = jnp.asarray([2.0, 1.0, 0.4], jnp.float32)
-    clouds = icp_mod._stage_clouds(src, valid, count, dists, False)
-    stage = [icp_mod._stage_cloud(clouds, jnp.int32(s), 2) for s in range(3)]
-    assert all(p.shape == (16384, 3) and w.shape == (16384,) for p, w, _ in stage)
+    clouds = icp_mod._coarse_clouds(src, valid, count, dists, False)
+    stage = [icp_mod._coarse_cloud(clouds, jnp.int32(s)) for s in range(2)]
+    assert all(p.shape == (4096, 3) and w.shape == (4096,) for p, w, _ in stage)
     m = -(-count // k)
-    for pts, w, cnt in stage[:2]:
+    for pts, w, cnt in stage:
         assert int(cnt) == m
         np.testing.assert_array_equal(np.asarray(pts[:m]), np.asarray(src)[:count:k])
         assert np.all(np.asarray(w[:m]) == 1) and np.all(np.asarray(w[m:]) == 0)
-    pts, w, cnt = stage[2]
-    assert int(cnt) == count
-    np.testing.assert_array_equal(np.asarray(pts), np.asarray(src))
-    np.testing.assert_array_equal(np.asarray(w), np.asarray(valid, np.float32))
+
+
+@pytest.mark.parametrize("n", [2048, 4096, 6144, 8192, 16384, 24576, 65536, 262144])
+def test_coarse_rows_hold_every_count(n):
+    """The coarse cloud's static rows hold every k-th point for every valid count <= n."""
+    rows = icp_mod._coarse_rows(n, False)
+    assert rows <= n and rows % min(n, 2048) == 0
+    count = np.arange(n + 1)
+    k = np.clip(count // icp_mod._COARSE_MIN_QUERIES, 1, icp_mod._COARSE_EVERY)
+    assert int(np.max(-(-count // k))) <= rows
+    assert icp_mod._coarse_rows(n, True) == n
 
 
 def test_voxel_downsample_matches_numpy():
