@@ -147,28 +147,39 @@ def bench_multi(res, ks, repeats):
     p1, p2, T12 = scene_pair(res, crop_1=(-1.0, 11.5), crop_2=(0.5, 13.0))
     print(f"clouds {len(p2)} / {len(p1)} points; 'right' = candidates within 0.05 rad of the truth; the room is "
           "symmetric under a turn by pi, and the point score of that candidate ties with the truth's (within "
-          "2 %), so 'best' may be 3.14 rad off: the pipeline's refine='multi' ranks by map agreement instead")
+          "2 %), so 'best' may be 3.14 rad off: the pipeline's refine='multi' ranks by map agreement instead. "
+          f"Each row alternates one icp_multi call with 12 single runs of each peer, {repeats} rounds after a "
+          "warm-up (medians; this VM's speed drifts by up to 1.5x between minutes)")
+    peers = [(name, run) for name, mod, run in (("Open3D", o3d, run_o3d), ("small_gicp", sg, run_sg))
+             if mod is not None]
     for yaw in (0.5, 1.7):
         T0 = xyz_rpy64(0.0, 0.0, 0.0, 0.0, 0.0, yaw) @ T12
-        peers = {}  # name -> 12 single runs [s]
-        for name, mod, run in (("Open3D", o3d, run_o3d), ("small_gicp", sg, run_sg)):
-            if mod is not None:
-                T, _, t = timed(lambda: run(p1, p2, T0, res), max(1, repeats))
-                e = errs(T, T12)
-                peers[name] = 12 * t
-                print(f"start yaw {yaw} rad: {name} single run (two stages x 50 iterations) {t:.3f} s, ends "
-                      f"{e[0]:.4f} rad / {e[1]:.3f} m off")
-        cols = " ".join(f"{'12 x ' + n + ' / ours':>22}" for n in peers)
+        for name, run in peers:
+            e = errs(run(p1, p2, T0, res), T12)
+            print(f"start yaw {yaw} rad: {name} single run (two stages x 50 iterations) ends "
+                  f"{e[0]:.4f} rad / {e[1]:.3f} m off")
+        cols = " ".join(f"{'12 x ' + n + ' s':>18} {'/ ours':>6}" for n, _ in peers)
         print(f"{'yaw':>4} {'k':>4} {'mode':>10} | {'1st s':>7} {'steady s':>8} {'hyp/s':>7} {'basins':>6} | "
               f"{'best rot/m':>17} {'right':>5} | {cols}")
         for i, k in enumerate(ks):
             for sequential in ((True, False) if i == 0 and yaw == 1.7 else (True,)):
                 f = lambda: icp_mod.icp_multi(p2, p1, T0, resolution=res, yaw_step_rad=2 * np.pi / k,
                                               roll_pitch_offset_rad=0.0, sequential=sequential)
-                m, first, t = timed(f, repeats)
+                m, first, _ = timed(f, 0)
+                ours, peer_t = [], {name: [] for name, _ in peers}
+                for _ in range(max(1, repeats)):
+                    t0 = time.perf_counter()
+                    m = jax.block_until_ready(f())
+                    ours.append(time.perf_counter() - t0)
+                    for name, run in peers:
+                        t0 = time.perf_counter()
+                        for _ in range(12):
+                            run(p1, p2, T0, res)
+                        peer_t[name].append(time.perf_counter() - t0)
+                t = float(np.median(ours))
                 e = errs(m.best.T_target_source, T12)
                 right = sum(errs(m.candidates.T_target_source[j], T12)[0] < 0.05 for j in range(k))
-                ratios = " ".join(f"{v / t:22.2f}" for v in peers.values())
+                ratios = " ".join(f"{np.median(v):18.2f} {np.median(v) / t:6.2f}" for v in peer_t.values())
                 mode = "sequential" if sequential else "vmap"
                 basins = len(np.unique(np.asarray(m.basin)))
                 print(f"{yaw:4.1f} {k:4d} {mode:>10} | {first:7.2f} {t:8.2f} {k / t:7.1f} {basins:6d} | "
