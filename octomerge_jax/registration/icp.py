@@ -406,10 +406,11 @@ def _voxel_downsample(points, valid, cell):
 
 
 def _coarse_rows(n: int, downsample: bool) -> int:
-    """Static rows of the coarse stages' query cloud for a source of capacity ``n``: every k-th
-    point (``_every_kth``) leaves at most ``max(min(n, 2 _COARSE_MIN_QUERIES - 1), n /
-    _COARSE_EVERY)`` valid rows (k = 1 below 2 x the minimum, then k >= 2 ...), rounded up
-    to whole query blocks; the voxel-grid centroids (``downsample``) up to ``n``."""
+    """Static rows of the coarse stages' query cloud for a source of capacity ``n``. Every k-th
+    point (``_every_kth``, ``m = _COARSE_MIN_QUERIES``) leaves ``count`` rows for ``count <
+    2 m`` (k = 1), at most ``1.5 m`` for k = 2 and 3, and ``count / 4 <= n / 4`` for k = 4:
+    so ``max(min(n, 2 m), n / 4)`` rows, rounded up to whole query blocks, hold every count
+    (``n`` itself for small clouds). The voxel-grid centroids (``downsample``) need ``n``."""
     if downsample:
         return n
     block = neighbors._CHUNK  # the search's query block
@@ -463,8 +464,9 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
     Two loops of the same iteration: the coarse stages on the coarse query cloud, whose arrays
     have ``_coarse_rows(n)`` rows (a quarter of the source's for large clouds: the per-point
     work of an iteration, not only its search, scales with the queries), then the last stage
-    on the source points. The hand-over is a stage change, which restarts the acceleration
-    history and the stall count anyway, so the iterates are those of one loop.
+    on the source points; one loop for all stages when the coarse cloud is as long as the
+    source. The hand-over is a stage change, which restarts the acceleration history and the
+    stall count anyway, so the iterates are those of one loop.
 
     Resumable, for ``icp_multi``'s basin merging: ``stop_stage`` (may be traced) returns the loop
     state ``(T, stage, iteration, done, status)`` as soon as the run leaves that stage (or
