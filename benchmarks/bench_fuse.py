@@ -11,11 +11,17 @@ real building map pairs: merge 0.10 s / 0.37 s / 1.53 s for 258k+311k / 1.1M+1.2
 4.4M+4.7M leaves, plus pruning 0.05 / 0.20 / 0.74 s. We compare leaves per second
 (n1 + n2) / (merge + prune) at the nearest anchor size. Target: >= 3x.
 
+Live peer: that loop itself, ``alg8_octomap.cpp`` (Alg. 8 on OctoMap 1.10 with A.3's bugs fixed,
+one root-to-leaf walk of M1 per M2 leaf, then ``OcTree::prune``), built when g++ and
+cmeel-octomap exist (the ``bench`` extra) and run on the same pair in the same run (median of
+``--repeats``, trees rebuilt untimed before each): ``x octomap`` is its merge + prune time over
+ours, and ``same`` says whether its merged leaves equal ours (an independent check at 4M leaves).
+
 ``fuse_many`` vs the fold ``fuse(fuse(m0, m1), m2) ...`` on m crops of the small building in two
 layouts (``many_maps``): ``slide`` (each voxel in one or two maps) and ``shared`` (each voxel in
 up to m maps, as m robots exploring the same building).
 
-Usage: ``python benchmarks/bench_fuse.py [--sizes small,medium,large] [--repeats 3]``
+Usage: ``python benchmarks/bench_fuse.py [--sizes small,medium,large] [--pairs ml,noisy] [--repeats 3] [--no-cpp]``
 Prints a table; compile (first call) is reported apart from the steady-state median
 (``block_until_ready``; ``fuse`` with and without pruning called alternately, at least
 ``--repeats`` times each and 2 s in all, since a 20 ms call's median over 3 calls swings 1.5x on
@@ -33,6 +39,7 @@ import statistics
 import time
 
 import _host_memory
+import _octomap_peer
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -118,13 +125,16 @@ def crop_map(keys, values, mask, ml=False):
     return omap.from_leaves(c, d, v, RES, check=False)
 
 
-def make_pair(shape, seed=0):
+def make_pair(shape, seed=0, kind="ml"):
+    """Two crops of one building: ``"ml"``, the second converted to maximum likelihood (pruned
+    coarser: fewer, larger leaves, depth conflicts); ``"noisy"``, both with their own noise
+    (leaf counts alike, as two robots' maps of one building)."""
     rng = np.random.default_rng(seed)
     keys, (f1, f2) = building(shape, rng)
     x = keys[:, 0].astype(np.int64) - keys[:, 0].min()
     X = shape[0]
     m1 = crop_map(keys, f1, x < int(0.6 * X))
-    m2 = crop_map(keys, f2, x >= int(0.4 * X), ml=True)
+    m2 = crop_map(keys, f2, x >= int(0.4 * X), ml=(kind == "ml"))
     return m1, m2
 
 
@@ -158,14 +168,57 @@ def anchor_rate(n):
     return n_a / (merge + prune), n_a
 
 
-def bench_pairs(sizes, repeats):
-    print("\n## fuse(m1, m2): two overlapping crops, m2 max-likelihood (coarser pruned)")
-    hdr = (f"{'size':>7} {'n1':>9} {'n2':>9} {'refined':>9} {'out':>9} {'cap':>9} "
+def _dump_leaves(fh, m):
+    lv = m.leaves()
+    np.array([m.num_leaves], np.int64).tofile(fh)
+    np.array([m.resolution], np.float64).tofile(fh)
+    np.asarray(lv.keys, np.uint16).tofile(fh)
+    np.asarray(lv.depths, np.uint8).tofile(fh)
+    np.asarray(lv.log_odds, np.float32).tofile(fh)
+
+
+def _read_leaves(path):
+    """A map dump of ``alg8_octomap`` as (Morton codes, depths, log-odds), sorted by code."""
+    with open(path, "rb") as fh:
+        n = int(np.fromfile(fh, np.int64, 1)[0])
+        np.fromfile(fh, np.float64, 1)
+        keys = np.fromfile(fh, np.uint16, 3 * n).reshape(n, 3)
+        depths = np.fromfile(fh, np.uint8, n)
+        lo = np.fromfile(fh, np.float32, n)
+    codes = morton.keys_to_codes(keys)
+    order = np.argsort(codes, kind="stable")
+    return codes[order], depths[order].astype(np.int32), lo[order]
+
+
+def run_octomap_peer(exe, name, m1, m2, repeats):
+    """Alg. 8 on OctoMap (``alg8_octomap``) on the pair: (its JSON result, merged leaves)."""
+    build_dir = _octomap_peer.HERE / "_build"
+    dump, merged = build_dir / f"fuse_{name}.bin", build_dir / f"fused_{name}.bin"
+    with open(dump, "wb") as fh:
+        _dump_leaves(fh, m1)
+        _dump_leaves(fh, m2)
+        np.array([LMIN, LMAX], np.float32).tofile(fh)
+    res = _octomap_peer.run(exe, dump, repeats, merged)
+    return (res, _read_leaves(merged)) if res else (None, None)
+
+
+def same_leaves(m, ref):
+    codes, depths, lo = ref
+    n = m.num_leaves
+    lv = m.leaves()
+    return (n == codes.size and np.array_equal(morton.keys_to_codes(np.asarray(lv.keys, np.uint16)), codes)
+            and np.array_equal(np.asarray(lv.depths), depths) and np.array_equal(np.asarray(lv.log_odds), lo))
+
+
+def bench_pairs(sizes, kinds, repeats, exe=None):
+    print("\n## fuse(m1, m2): two overlapping crops; pair ml: m2 max-likelihood (coarser pruned), "
+          "noisy: both noisy")
+    hdr = (f"{'size':>7} {'pair':>5} {'n1':>9} {'n2':>9} {'refined':>9} {'out':>9} {'cap':>9} "
            f"{'compile s':>9} {'merge s':>8} {'+prune s':>8} {'Mleaf/s':>8} {'anchor':>12} "
-           f"{'x anchor':>8} {'x, IQR':>11} {'peakGB':>6}")
+           f"{'x anchor':>8} {'x, IQR':>11} {'octomap s':>14} {'x octomap':>9} {'same':>5} {'peakGB':>6}")
     print(hdr)
-    for name in sizes:
-        m1, m2 = make_pair(SIZES[name])
+    for name, kind in ((n, k) for n in sizes for k in kinds):
+        m1, m2 = make_pair(SIZES[name], kind=kind)
         _, rep = F.fuse(m1, m2, return_report=True)  # host capacity planning
         cap = omap.bucket_capacity(int(rep.refined_cells))  # the refinement's own bucket
         jax.clear_caches()  # the planning call above may have compiled this capacity already
@@ -180,10 +233,19 @@ def bench_pairs(sizes, repeats):
         rate = n / total
         a_rate, a_n = anchor_rate(n)
         x_lo, x_hi = (n / q / a_rate for q in q_total[::-1])  # x anchor at the 75 % / 25 % quantile times
-        print(f"{name:>7} {m1.num_leaves:>9} {m2.num_leaves:>9} {int(rep.refined_cells):>9} "
+        peer, ref = run_octomap_peer(exe, f"{name}_{kind}", m1, m2, repeats) if exe else (None, None)
+        if peer:
+            p_total = peer["merge_s"] + peer["prune_s"]
+            octo = f"{peer['merge_s']:.3f}+{peer['prune_s']:.3f}"
+            x_octo = f"{p_total / total:9.2f}"
+            same = str(same_leaves(F.fuse(m1, m2, capacity=cap), ref))
+        else:
+            octo, x_octo, same = "-", "-", "-"
+        print(f"{name:>7} {kind:>5} {m1.num_leaves:>9} {m2.num_leaves:>9} {int(rep.refined_cells):>9} "
               f"{int(rep.leaves_out):>9} {cap:>9} {compile_s:>9.2f} {merge:>8.3f} "
               f"{total - merge:>8.3f} {rate / 1e6:>8.2f} {f'{a_rate / 1e6:.2f}@{a_n / 1e6:.1f}M':>12} "
-              f"{rate / a_rate:>8.2f} {x_lo:>5.2f}-{x_hi:<5.2f} {peak_rss_gb():>6.2f}", flush=True)
+              f"{rate / a_rate:>8.2f} {x_lo:>5.2f}-{x_hi:<5.2f} {octo:>14} {x_octo:>9} {same:>5} "
+              f"{peak_rss_gb():>6.2f}", flush=True)
     print(f"load average {os.getloadavg()[0]:.2f}")
 
 
@@ -246,12 +308,16 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--many", default="2,4,8", help="m values for fuse_many vs fold ('' to skip)")
     ap.add_argument("--layouts", default="slide,shared", help="fuse_many map layouts (see many_maps)")
+    ap.add_argument("--pairs", default="ml,noisy", help="pair kinds (see make_pair)")
+    ap.add_argument("--no-cpp", action="store_true", help="skip the C++ Alg. 8 peer on OctoMap")
     _host_memory.add_flag(ap)
     args = ap.parse_args()
+    exe = None if args.no_cpp else _octomap_peer.build("alg8_octomap")
     print(f"host memory reuse: {_host_memory.apply(args)}")
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, devices {jax.devices()}, "
           f"load average {os.getloadavg()[0]:.2f} (and at the end of each table)")
-    bench_pairs([s for s in args.sizes.split(",") if s], args.repeats)
+    print(f"C++ Alg. 8 peer on OctoMap 1.10: {exe or 'not built (needs g++ and cmeel-octomap)'}")
+    bench_pairs([s for s in args.sizes.split(",") if s], args.pairs.split(","), args.repeats, exe)
     if args.many:
         for layout in args.layouts.split(","):
             bench_many(SIZES["small"], [int(m) for m in args.many.split(",")], layout, args.repeats)

@@ -23,7 +23,6 @@ import argparse
 import json
 import os
 import resource
-import shutil
 import statistics
 import subprocess
 import sys
@@ -31,6 +30,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+import _octomap_peer
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -228,37 +229,11 @@ def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
 
 def build_cpp() -> Path | None:
     """Compile ``alg7_octomap.cpp`` against cmeel-octomap if g++ and the package exist."""
-    src = HERE / "alg7_octomap.cpp"
-    gxx = shutil.which("g++")
-    if not (src.exists() and gxx):
-        return None
-    try:
-        import cmeel  # noqa: F401  (cmeel-octomap installs under cmeel.prefix)
-        prefix = Path(sys.prefix) / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages" / "cmeel.prefix"
-    except ImportError:
-        return None
-    if not (prefix / "include" / "octomap").exists():
-        return None
-    out_dir = HERE / "_build"
-    out_dir.mkdir(exist_ok=True)
-    exe = out_dir / "alg7_octomap"
-    if not exe.exists() or exe.stat().st_mtime < src.stat().st_mtime:
-        cmd = [gxx, "-O3", "-DNDEBUG", "-std=c++17", str(src), "-o", str(exe),
-               f"-I{prefix / 'include'}", f"-L{prefix / 'lib'}", "-loctomap", "-loctomath",
-               f"-Wl,-rpath,{prefix / 'lib'}"]
-        r = subprocess.run(cmd, capture_output=True, text=True)
-        if r.returncode != 0:
-            print("C++ peer build failed:\n" + r.stderr[-2000:], file=sys.stderr)
-            return None
-    return exe
+    return _octomap_peer.build("alg7_octomap")
 
 
 def run_cpp(exe: Path, dump: str) -> dict | None:
-    r = subprocess.run([str(exe), dump], capture_output=True, text=True)
-    if r.returncode != 0:
-        print(f"C++ peer failed: {r.stderr[-1000:]}", file=sys.stderr)
-        return None
-    return json.loads(r.stdout.strip().splitlines()[-1])
+    return _octomap_peer.run(exe, dump)
 
 
 # ----------------------------------------------------------------------------- main
