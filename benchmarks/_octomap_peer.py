@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 HERE = Path(__file__).resolve().parent
 
 
@@ -49,3 +51,25 @@ def run(exe: Path, *args: str) -> dict | None:
         print(f"C++ peer failed: {r.stderr[-1000:]}", file=sys.stderr)
         return None
     return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def write_leaves(fh, m) -> None:
+    """One map in the peers' input layout: int64 n, float64 resolution, uint16 min-corner keys
+    (n, 3), uint8 depths (n,), float32 log-odds (n,)."""
+    lv = m.leaves()
+    np.array([m.num_leaves], np.int64).tofile(fh)
+    np.array([m.resolution], np.float64).tofile(fh)
+    np.asarray(lv.keys, np.uint16).tofile(fh)
+    np.asarray(lv.depths, np.uint8).tofile(fh)
+    np.asarray(lv.log_odds, np.float32).tofile(fh)
+
+
+def read_leaves(path):
+    """A map a peer wrote in that layout: ``(keys (n, 3) uint16, depths (n,) int32, log-odds)``."""
+    with open(path, "rb") as fh:
+        n = int(np.fromfile(fh, np.int64, 1)[0])
+        np.fromfile(fh, np.float64, 1)
+        keys = np.fromfile(fh, np.uint16, 3 * n).reshape(n, 3)
+        depths = np.fromfile(fh, np.uint8, n).astype(np.int32)
+        log_odds = np.fromfile(fh, np.float32, n)
+    return keys, depths, log_odds

@@ -168,26 +168,12 @@ def anchor_rate(n):
     return n_a / (merge + prune), n_a
 
 
-def _dump_leaves(fh, m):
-    lv = m.leaves()
-    np.array([m.num_leaves], np.int64).tofile(fh)
-    np.array([m.resolution], np.float64).tofile(fh)
-    np.asarray(lv.keys, np.uint16).tofile(fh)
-    np.asarray(lv.depths, np.uint8).tofile(fh)
-    np.asarray(lv.log_odds, np.float32).tofile(fh)
-
-
-def _read_leaves(path):
-    """A map dump of ``alg8_octomap`` as (Morton codes, depths, log-odds), sorted by code."""
-    with open(path, "rb") as fh:
-        n = int(np.fromfile(fh, np.int64, 1)[0])
-        np.fromfile(fh, np.float64, 1)
-        keys = np.fromfile(fh, np.uint16, 3 * n).reshape(n, 3)
-        depths = np.fromfile(fh, np.uint8, n)
-        lo = np.fromfile(fh, np.float32, n)
+def _read_merged(path):
+    """``alg8_octomap``'s merged leaves as (Morton codes, depths, log-odds), sorted by code."""
+    keys, depths, lo = _octomap_peer.read_leaves(path)
     codes = morton.keys_to_codes(keys)
     order = np.argsort(codes, kind="stable")
-    return codes[order], depths[order].astype(np.int32), lo[order]
+    return codes[order], depths[order], lo[order]
 
 
 def run_octomap_peer(exe, name, m1, m2, repeats):
@@ -195,11 +181,11 @@ def run_octomap_peer(exe, name, m1, m2, repeats):
     build_dir = _octomap_peer.HERE / "_build"
     dump, merged = build_dir / f"fuse_{name}.bin", build_dir / f"fused_{name}.bin"
     with open(dump, "wb") as fh:
-        _dump_leaves(fh, m1)
-        _dump_leaves(fh, m2)
+        _octomap_peer.write_leaves(fh, m1)
+        _octomap_peer.write_leaves(fh, m2)
         np.array([LMIN, LMAX], np.float32).tofile(fh)
     res = _octomap_peer.run(exe, dump, repeats, merged)
-    return (res, _read_leaves(merged)) if res else (None, None)
+    return (res, _read_merged(merged)) if res else (None, None)
 
 
 def same_leaves(m, ref):

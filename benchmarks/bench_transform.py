@@ -173,13 +173,8 @@ def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
     m = tiled_map(tiles)
     jax.block_until_ready(m.code)
     if dump:
-        lv = m.leaves()
         with open(dump, "wb") as fh:
-            np.array([m.num_leaves], np.int64).tofile(fh)
-            np.array([RES], np.float64).tofile(fh)
-            lv.keys.astype(np.uint16).tofile(fh)
-            lv.depths.astype(np.uint8).tofile(fh)
-            lv.log_odds.astype(np.float32).tofile(fh)
+            _octomap_peer.write_leaves(fh, m)
             transform(tiles).astype(np.float64).tofile(fh)
     rss_before = _rss_mb()
     T = transform(tiles)
