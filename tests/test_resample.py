@@ -489,11 +489,27 @@ def test_sample_at_centres_and_gradients():
     pts = centres + RES * rng.uniform(0.2, 0.8, size=centres.shape).astype(np.float32)
     check_grads(lambda p: resample.sample(m, p, space="probability")[0], (jnp.asarray(pts),),
                 order=1, modes=("rev",), eps=1e-3, atol=2e-2, rtol=2e-2)
-    # Through a transform: the gradient of the mean occupancy w.r.t. a translation is finite.
+    # Through a translation, where the field varies: points whose 8 trilinear corners are known
+    # finest voxels of unequal values (inside a uniform coarse leaf the gradient is 0, and the
+    # points above have it at 4 of 64). The gradient equals central differences.
+    corners = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3)
+    all_keys = np.array(list(vox.keys()))
+    cand = all_keys + 0.5 + rng.uniform(0.2, 0.8, size=all_keys.shape)  # in voxel units
+    varied = []
+    for c in cand:
+        vals = [vox.get(tuple(k)) for k in np.floor(c - 0.5).astype(np.int64) + corners]
+        if None not in vals and max(vals) - min(vals) > 0.5:
+            varied.append(c)
+    assert len(varied) >= NP
+    pts_v = ((np.array(varied[:NP]) - OFF) * RES).astype(np.float32)
+
     def score(t):
-        return jnp.mean(resample.sample(m, jnp.asarray(pts) + t, space="probability")[0])
-    gt = jax.grad(score)(jnp.zeros(3, jnp.float32))
-    assert np.all(np.isfinite(np.asarray(gt))) and float(jnp.abs(gt).sum()) > 0
+        return jnp.mean(resample.sample(m, jnp.asarray(pts_v) + t, space="log_odds")[0])
+    gt = np.asarray(jax.grad(score)(jnp.zeros(3, jnp.float32)))
+    eye, e = np.eye(3, dtype=np.float32), np.float32(1e-3)
+    fd = [(float(score(eye[i] * e)) - float(score(-eye[i] * e))) / (2 * e) for i in range(3)]
+    assert np.abs(gt).max() > 1.0, gt  # log-odds per metre
+    np.testing.assert_allclose(gt, fd, rtol=2e-2, atol=2e-2)
 
 
 def test_sample_nearest_and_unknown():
