@@ -14,7 +14,8 @@
 // Input: a binary dump written by bench_fuse.py: two maps, each (int64 n, float64 resolution,
 // uint16 min-corner keys [n][3], uint8 depths [n], float32 log-odds [n]), then float32 clamp
 // min and max (log-odds). argv[2]: repeats (the trees are rebuilt, untimed, before every run);
-// argv[3] (optional): write the merged leaves there (same per-map layout, min-corner keys).
+// argv[3] (optional, "-" for none): write the merged leaves there (same per-map layout, min-corner
+// keys); argv[4]: `morton` (default) or `shuffled`, the order the trees are built in (see build()).
 // Output (stdout, last line): {"merge_s": median wall, "prune_s": median wall, "leaves": n, ...}.
 //
 // Build (done by bench_fuse.py when g++ and cmeel-octomap exist):
@@ -28,6 +29,8 @@
 #include <cstdlib>
 #include <fstream>
 #include <iostream>
+#include <numeric>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -152,8 +155,13 @@ class MergeTree : public OcTree {
   }
 };
 
-static void build(MergeTree& t, const Leaves& m) {
-  for (int64_t i = 0; i < m.n; ++i) {
+// Leaves inserted in Morton order (the node layout OcTree::read gives a .bt file) or, `shuffled`, in a
+// random order: nodes scattered in memory, as in a map grown by scan insertion over a long run.
+static void build(MergeTree& t, const Leaves& m, bool shuffled) {
+  std::vector<int64_t> order(m.n);
+  std::iota(order.begin(), order.end(), 0);
+  if (shuffled) std::shuffle(order.begin(), order.end(), std::mt19937_64(1));
+  for (int64_t i : order) {
     OcTreeKey k(m.keys[3 * i], m.keys[3 * i + 1], m.keys[3 * i + 2]);
     t.insertLeaf(k, m.depths[i], m.log_odds[i]);
   }
@@ -161,7 +169,7 @@ static void build(MergeTree& t, const Leaves& m) {
 
 int main(int argc, char** argv) {
   if (argc < 2) {
-    std::cerr << "usage: alg8_octomap dump.bin [repeats] [merged.bin]\n";
+    std::cerr << "usage: alg8_octomap dump.bin [repeats] [merged.bin|-] [morton|shuffled]\n";
     return 2;
   }
   std::ifstream in(argv[1], std::ios::binary);
@@ -172,14 +180,16 @@ int main(int argc, char** argv) {
     return 1;
   }
   int repeats = argc > 2 ? std::max(1, std::atoi(argv[2])) : 1;
+  bool write_out = argc > 3 && std::string(argv[3]) != "-";
+  bool shuffled = argc > 4 && std::string(argv[4]) == "shuffled";
   std::vector<double> merge_s, prune_s;
   size_t leaves = 0;
   long cases[4] = {0, 0, 0, 0};
   for (int r = 0; r < repeats; ++r) {
     MergeTree t1(m1.res, clamp[0], clamp[1]);
     MergeTree t2(m2.res, clamp[0], clamp[1]);
-    build(t1, m1);
-    build(t2, m2);
+    build(t1, m1, shuffled);
+    build(t2, m2, shuffled);
     t1.beginMerge();
     auto t0 = std::chrono::steady_clock::now();
     for (auto it = t2.begin_leafs(), end = t2.end_leafs(); it != end; ++it)
@@ -191,7 +201,7 @@ int main(int argc, char** argv) {
     prune_s.push_back(std::chrono::duration<double>(t_prune - t_merge).count());
     leaves = t1.getNumLeafNodes();
     std::copy(t1.cases, t1.cases + 4, cases);
-    if (r == repeats - 1 && argc > 3) t1.write(argv[3]);
+    if (r == repeats - 1 && write_out) t1.write(argv[3]);
   }
   std::sort(merge_s.begin(), merge_s.end());
   std::sort(prune_s.begin(), prune_s.end());

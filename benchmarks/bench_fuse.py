@@ -16,6 +16,9 @@ one root-to-leaf walk of M1 per M2 leaf, then ``OcTree::prune``), built when g++
 cmeel-octomap exist (the ``bench`` extra) and run on the same pair in the same run (median of
 ``--repeats``, trees rebuilt untimed before each): ``x octomap`` is its merge + prune time over
 ours, and ``same`` says whether its merged leaves equal ours (an independent check at 4M leaves).
+Its trees are built in Morton order, the node layout ``OcTree::read`` gives a ``.bt`` file; ``x
+shuffled`` is the same ratio on trees built in a random order (nodes scattered in memory, as in a map
+grown by scan insertion over a long run), where each walk misses the cache far more.
 
 ``fuse_many`` vs the fold ``fuse(fuse(m0, m1), m2) ...`` on m crops of the small building in two
 layouts (``many_maps``): ``slide`` (each voxel in one or two maps) and ``shared`` (each voxel in
@@ -185,6 +188,8 @@ def run_octomap_peer(exe, name, m1, m2, repeats):
         _octomap_peer.write_leaves(fh, m2)
         np.array([LMIN, LMAX], np.float32).tofile(fh)
     res = _octomap_peer.run(exe, dump, repeats, merged)
+    if res:  # the same merge on trees whose nodes are scattered in memory
+        res["shuffled"] = _octomap_peer.run(exe, dump, repeats, "-", "shuffled")
     return (res, _read_merged(merged)) if res else (None, None)
 
 
@@ -201,7 +206,7 @@ def bench_pairs(sizes, kinds, repeats, exe=None):
           "noisy: both noisy")
     hdr = (f"{'size':>7} {'pair':>5} {'n1':>9} {'n2':>9} {'refined':>9} {'out':>9} {'cap':>9} "
            f"{'compile s':>9} {'merge s':>8} {'+prune s':>8} {'Mleaf/s':>8} {'anchor':>12} "
-           f"{'x anchor':>8} {'x, IQR':>11} {'octomap s':>14} {'x octomap':>9} {'same':>5} {'peakGB':>6}")
+           f"{'x anchor':>8} {'x, IQR':>11} {'octomap s':>14} {'x octomap':>9} {'x shuffled':>9} {'same':>5} {'peakGB':>6}")
     print(hdr)
     for name, kind in ((n, k) for n in sizes for k in kinds):
         m1, m2 = make_pair(SIZES[name], kind=kind)
@@ -224,13 +229,15 @@ def bench_pairs(sizes, kinds, repeats, exe=None):
             p_total = peer["merge_s"] + peer["prune_s"]
             octo = f"{peer['merge_s']:.3f}+{peer['prune_s']:.3f}"
             x_octo = f"{p_total / total:9.2f}"
+            sh = peer.get("shuffled")
+            x_shuf = f"{(sh['merge_s'] + sh['prune_s']) / total:9.2f}" if sh else "-"
             same = str(same_leaves(F.fuse(m1, m2, capacity=cap), ref))
         else:
-            octo, x_octo, same = "-", "-", "-"
+            octo, x_octo, x_shuf, same = "-", "-", "-", "-"
         print(f"{name:>7} {kind:>5} {m1.num_leaves:>9} {m2.num_leaves:>9} {int(rep.refined_cells):>9} "
               f"{int(rep.leaves_out):>9} {cap:>9} {compile_s:>9.2f} {merge:>8.3f} "
               f"{total - merge:>8.3f} {rate / 1e6:>8.2f} {f'{a_rate / 1e6:.2f}@{a_n / 1e6:.1f}M':>12} "
-              f"{rate / a_rate:>8.2f} {x_lo:>5.2f}-{x_hi:<5.2f} {octo:>14} {x_octo:>9} {same:>5} "
+              f"{rate / a_rate:>8.2f} {x_lo:>5.2f}-{x_hi:<5.2f} {octo:>14} {x_octo:>9} {x_shuf:>9} {same:>5} "
               f"{peak_rss_gb():>6.2f}", flush=True)
     print(f"load average {os.getloadavg()[0]:.2f}")
 
