@@ -606,7 +606,8 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
         num = clouds[0].shape[0]  # the coarse stages' entries, then the source points
 
         def any_stage(stage):
-            return _coarse_cloud(clouds, jnp.where(stage == last_stage, num - 1, jnp.minimum(stage, num - 2)))
+            i = jnp.where(stage == last_stage, num - 1, jnp.minimum(stage, num - 2))
+            return clouds[0][i], clouds[1][i], clouds[2][i]
 
         loops = [(any_stage, n, every_stage)]
     else:
