@@ -219,18 +219,6 @@ def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
                 dense_mb=dense_bytes / 2**20, out_mb=out_bytes / 2**20)
 
 
-# ----------------------------------------------------------------------------- C++ peer
-
-
-def build_cpp() -> Path | None:
-    """Compile ``alg7_octomap.cpp`` against cmeel-octomap if g++ and the package exist."""
-    return _octomap_peer.build("alg7_octomap")
-
-
-def run_cpp(exe: Path, dump: str) -> dict | None:
-    return _octomap_peer.run(exe, dump)
-
-
 # ----------------------------------------------------------------------------- main
 
 
@@ -246,7 +234,7 @@ def main() -> None:
     if a.child:
         print(json.dumps(run_size(a.child, a.repeats, a.method, a.dump)))
         return
-    exe = None if a.no_cpp else build_cpp()
+    exe = None if a.no_cpp else _octomap_peer.build("alg7_octomap")
     import jax
     print(f"# transform_map benchmark: yaw pi/4 + translation, method={a.method}, "
           f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPUs, "
@@ -267,7 +255,7 @@ def main() -> None:
         s = json.loads(r.stdout.strip().splitlines()[-1])
         peer, peer_cpu, label = None, None, ""
         if exe and dump:
-            c = run_cpp(exe, dump)
+            c = _octomap_peer.run(exe, dump)
             if c:
                 peer, peer_cpu = c["seconds"], c["cpu_seconds"]
                 label = "C++"
