@@ -10,10 +10,12 @@ import pytest
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 
 
-# 02 runs 15 registrations (45-58 s on 2 cores): in the slow run; the default run keeps the
-# main workflow (01); Table 7.1 / 7.2 rows are tested in test_registration_icp / _overlap, test_dense
+# 02 runs 15 registrations (45-58 s on 2 cores) and 03 gradient tuning (~33 s): in the slow run;
+# the default run keeps the main workflow (01); Table 7.1 / 7.2 rows are tested in
+# test_registration_icp / _overlap, dense alignment and its gradients in test_dense
 @pytest.mark.parametrize("name", ["01_merge_two_maps.ipynb",
-                                  pytest.param("02_thesis_tables.ipynb", marks=pytest.mark.slow)])
+                                  pytest.param("02_thesis_tables.ipynb", marks=pytest.mark.slow),
+                                  pytest.param("03_gradient_transform_tuning.ipynb", marks=pytest.mark.slow)])
 def test_notebook_runs(name):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
