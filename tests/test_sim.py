@@ -137,9 +137,9 @@ def test_two_robot_ground_truth(two_maps):
 def test_dense_alignment_accepts_the_truth_on_ray_cast_maps(two_maps):
     """Ray-cast maps hold surfaces one voxel thick next to free space, seen sparsely: started
     at the truth, ``align_dense`` stays there and does not call it a failure (the earlier
-    agreement test, interpolated occupancy above 1/2, scored 0.76 at the solved pose here, 0.006
-    rad from the truth, and said status 2),
-    while the agreement still refutes the pose turned by 0.3 rad."""
+    agreement test, interpolated occupancy above 1/2, scored 0.76 at the solved pose here,
+    0.006 rad from the truth, and said status 2), while the agreement still refutes the pose
+    turned by 0.3 rad."""
     from octomerge_jax.registration import align_dense, metrics, prepare_alignment, score_alignment
 
     map1, map2, T_1_2 = two_maps

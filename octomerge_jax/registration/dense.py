@@ -633,10 +633,10 @@ def solve_alignment(problem: AlignProblem, T_1_2_init, *, maxiter: int = 30, tol
     (The earlier test, the interpolated occupancy itself above 1/2 at the point, scored right
     poses 0.62-0.97 and reported the truth on those maps at 0.05 m as a failure: a surface one
     voxel thick, sampled in another frame, interpolates to free at many of its points.)
-    ``min_overlap`` (default 0.15): a hopeless
-    start can end on a sliver of overlap that agrees perfectly (measured: 5-10 % of map 2's
-    surfaces in map 1's known space, agreement 0.96-0.995, vs 39-41 % for the true pose on
-    our test room); below 15 % the result is reported as status 3, not trusted."""
+    ``min_overlap`` (default 0.15): a hopeless start can end on a sliver of overlap that
+    agrees perfectly (measured: 5-10 % of map 2's surfaces in map 1's known space, agreement
+    0.96-0.995, vs 39-41 % for the true pose on our test room); below 15 % the result is
+    reported as status 3, not trusted."""
     args = _options(problem, maxiter, tol, xtol, max_step, min_overlap, min_agreement)
     if isinstance(T_1_2_init, jax.core.Tracer):
         return _solve_jit(problem, T_1_2_init, *args, maxiter=int(maxiter))
