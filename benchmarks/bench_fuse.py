@@ -24,6 +24,10 @@ grown by scan insertion over a long run), where each walk misses the cache far m
 layouts (``many_maps``): ``slide`` (each voxel in one or two maps) and ``shared`` (each voxel in
 up to m maps, as m robots exploring the same building).
 
+Pair kind ``robots`` (``--pairs ml,noisy,robots``, sizes small / medium): two simulated robots' maps
+of the office read from ``.bt`` bytes, map 2 transformed into map 1's frame, as ``fuse`` gets them in
+a merge (slow to simulate; ``gaps`` column: gap cells of the refinement).
+
 Usage: ``python benchmarks/bench_fuse.py [--sizes small,medium,large] [--pairs ml,noisy] [--repeats 3] [--no-cpp]``
 Prints a table; compile (first call) is reported apart from the steady-state median
 (``block_until_ready``; ``fuse`` with and without pruning called alternately, at least
@@ -128,10 +132,28 @@ def crop_map(keys, values, mask, ml=False):
     return omap.from_leaves(c, d, v, RES, check=False)
 
 
+# pair kind "robots": the package's simulated office, two robots' maps at this resolution per size
+ROBOT_RES = {"small": 0.05, "medium": 0.025}
+
+
+def robot_pair(name):
+    """Two simulated robots' maps of the office (``make_two_robot_maps``), each written and read
+    back as ``.bt`` bytes (maximum likelihood, as maps are exchanged), map 2 transformed into
+    map 1's frame by the true transform (``transform_map``): what ``fuse`` gets in a merge. Gap
+    cells are far more common here (3-8 % of the refinement) than on the building crops."""
+    import octomerge_jax as om
+
+    if name not in ROBOT_RES:
+        raise SystemExit(f"pair kind 'robots' exists for sizes {sorted(ROBOT_RES)}, not {name!r}")
+    m1, m2, T = om.make_two_robot_maps("office", resolution=ROBOT_RES[name], seed=0)
+    m1, m2 = (om.from_bytes(om.to_bytes(m, True, header=True)) for m in (m1, m2))
+    return m1, om.transform_map(m2, T)
+
+
 def make_pair(shape, seed=0, kind="ml"):
     """Two crops of one building: ``"ml"``, the second converted to maximum likelihood (pruned
     coarser: fewer, larger leaves, depth conflicts); ``"noisy"``, both with their own noise
-    (leaf counts alike, as two robots' maps of one building)."""
+    (leaf counts alike, as two robots' maps of one building). (``"robots"``: ``robot_pair``.)"""
     rng = np.random.default_rng(seed)
     keys, (f1, f2) = building(shape, rng)
     x = keys[:, 0].astype(np.int64) - keys[:, 0].min()
@@ -203,15 +225,20 @@ def same_leaves(m, ref):
 
 def bench_pairs(sizes, kinds, repeats, exe=None):
     print("\n## fuse(m1, m2): two overlapping crops; pair ml: m2 max-likelihood (coarser pruned), "
-          "noisy: both noisy")
-    hdr = (f"{'size':>7} {'pair':>5} {'n1':>9} {'n2':>9} {'refined':>9} {'out':>9} {'cap':>9} "
+          "noisy: both noisy; robots: simulated office maps via .bt, map 2 transformed (see robot_pair)")
+    hdr = (f"{'size':>7} {'pair':>5} {'n1':>9} {'n2':>9} {'refined':>9} {'gaps':>7} {'out':>9} {'cap':>9} "
            f"{'compile s':>9} {'merge s':>8} {'+prune s':>8} {'Mleaf/s':>8} {'anchor':>12} "
            f"{'x anchor':>8} {'x, IQR':>11} {'octomap s':>14} {'x octomap':>9} {'x shuffled':>9} {'same':>5} {'peakGB':>6}")
     print(hdr)
     for name, kind in ((n, k) for n in sizes for k in kinds):
-        m1, m2 = make_pair(SIZES[name], kind=kind)
+        if kind == "robots" and name not in ROBOT_RES:
+            print(f"{name:>7} {kind:>5} (no simulated pair at this size)")
+            continue
+        m1, m2 = robot_pair(name) if kind == "robots" else make_pair(SIZES[name], kind=kind)
         _, rep = F.fuse(m1, m2, return_report=True)  # host capacity planning
         cap = omap.bucket_capacity(int(rep.refined_cells))  # the refinement's own bucket
+        n_gap = int(F._fuse_pair(m1, m2, jnp.float32(1), jnp.float32(1), jnp.int32(F._MODE["sum"]), cap,
+                                 True, gap_capacity=None)[2])  # gap cells (the per-slot kernel counts all)
         jax.clear_caches()  # the planning call above may have compiled this capacity already
         t0 = time.perf_counter()
         jax.block_until_ready(F.fuse(m1, m2, capacity=cap).code)
@@ -234,7 +261,7 @@ def bench_pairs(sizes, kinds, repeats, exe=None):
             same = str(same_leaves(F.fuse(m1, m2, capacity=cap), ref))
         else:
             octo, x_octo, x_shuf, same = "-", "-", "-", "-"
-        print(f"{name:>7} {kind:>5} {m1.num_leaves:>9} {m2.num_leaves:>9} {int(rep.refined_cells):>9} "
+        print(f"{name:>7} {kind:>5} {m1.num_leaves:>9} {m2.num_leaves:>9} {int(rep.refined_cells):>9} {n_gap:>7} "
               f"{int(rep.leaves_out):>9} {cap:>9} {compile_s:>9.2f} {merge:>8.3f} "
               f"{total - merge:>8.3f} {rate / 1e6:>8.2f} {f'{a_rate / 1e6:.2f}@{a_n / 1e6:.1f}M':>12} "
               f"{rate / a_rate:>8.2f} {x_lo:>5.2f}-{x_hi:<5.2f} {octo:>14} {x_octo:>9} {x_shuf:>9} {same:>5} "
