@@ -55,6 +55,8 @@ from .pipeline import (
     _transform_and_fuse,
     check_resolutions,
     merge,
+    _refine_multi_locally,
+    _with_local_step,
     overlap_margin,
     rank_by_map_agreement,
     transform_from_xyz_rpy,
@@ -201,9 +203,12 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
                               roll_pitch_offset_rad=rc.roll_pitch_offset_rad,
                               **_icp_kwargs(cfg, s["m1"].resolution))
             jax.block_until_ready(r)
-            r, _ = rank_by_map_agreement(s["m1"], s["m2"], r)  # as merge does
+            problem = reg.prepare_alignment(s["m1"], s["m2"])
+            r, _ = rank_by_map_agreement(s["m1"], s["m2"], r, problem=problem)  # as merge does
+            local = _refine_multi_locally(s["q1"], s["q2"], r.best, problem, cfg, s["m1"].resolution,
+                                          _icp_kwargs(cfg, s["m1"].resolution), s["timings"])
             s["timings"]["icp"] = time.perf_counter() - t0
-            _finish_icp(i, state, results, r, cfg)
+            _finish_icp(i, state, results, r, cfg, local)
 
     # 3. transform, 4. fuse (grouped by bucket)
     moved = {}
@@ -258,11 +263,14 @@ def _trim(m: OccupancyMap) -> OccupancyMap:
                         m.resolution, m.tree_depth)
 
 
-def _finish_icp(i, state, results, r, cfg):
+def _finish_icp(i, state, results, r, cfg, local=None):
+    """``local``: ``_refine_multi_locally``'s ``(result or None, info)`` for ``refine="multi"``."""
     s = state[i]
     refine = cfg.registration.refine
     info = _icp_dict(r, refine)
     best = r.best if refine == "multi" else r
+    if local is not None:
+        best = _with_local_step(info, best, *local)
     T = np.asarray(best.T_target_source, np.float64)
     if info["status"] == "too_few_inliers" or not np.all(np.isfinite(T)):
         results[i] = BatchResult("error", message=f"ICP failed: {info['num_inliers']} inliers", kind="icp_failed")

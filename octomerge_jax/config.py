@@ -54,7 +54,9 @@ class RegistrationConfig:
     """Alg. 1-3: occupied-leaf clouds, commonly mapped subsets, ICP refinement.
 
     - ``refine``: ``"icp"`` (one ICP from the guess), ``"multi"`` (multi-hypothesis ICP over
-      yaw/roll/pitch perturbations of the guess; for poor guesses) or ``"none"`` (trust the guess).
+      yaw/roll/pitch perturbations of the guess on the whole clouds, the candidate picked by
+      map agreement, then one ICP on the commonly mapped subsets (``overlap``) from it, kept
+      if it agrees better; for poor guesses) or ``"none"`` (trust the guess).
     - ``overlap``: ``"bbox"`` (thesis Alg. 2: intersection of bounding boxes; the default,
       see below), ``"voxel"`` (points near the other map's points under the guess) or
       ``"none"`` (all points). Measured on the simulated lab (0.1 m, guess 0.8 m off):

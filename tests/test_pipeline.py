@@ -330,3 +330,46 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
     assert len(starts) == 2
     np.testing.assert_allclose(rep2.T_1_2, starts[0], atol=1e-5)  # ICP's transform kept
     assert sum("dense alignment failed" in w for w in rep2.warnings) == 2
+
+
+def test_multi_local_step_refines_a_biased_pick_and_is_guarded():
+    """refine="multi" ends with one ICP on the commonly mapped subsets from the candidate it
+    picked (the thesis's local step): from a pick 0.06 rad / 0.2 m off, as whole-cloud ICP
+    leaves them on partially overlapping maps, it lands near the truth with a lower map loss
+    and is used; from the truth itself it may not lower the loss, and is then not used."""
+    from octomerge_jax import registration as reg
+    from octomerge_jax.pipeline import _icp_kwargs, _refine_multi_locally
+    from octomerge_jax.registration import metrics
+
+    m1, m2, T = small_pair()
+    cfg = MergeConfig()
+    p1 = np.asarray(reg.occupied_points(m1), np.float32)
+    p2 = np.asarray(reg.occupied_points(m2), np.float32)
+    problem = reg.prepare_alignment(m1, m2)
+    kw = _icp_kwargs(cfg, m1.resolution)
+
+    def pick(T_pick):
+        return dataclasses.replace(merge_pick_template(), T_target_source=np.asarray(T_pick, np.float32))
+
+    biased = transform_from_xyz_rpy(0.15, -0.12, 0.0, 0.0, 0.0, 0.06) @ T
+    local, info = _refine_multi_locally(p1, p2, pick(biased), problem, cfg, m1.resolution, kw, {})
+    assert info["used"] and local is not None, info
+    assert info["map_loss_local"] < info["map_loss_pick"]
+    T_local = np.asarray(local.T_target_source, np.float64)
+    assert float(metrics.rotation_angle_error(T_local, T)) < 0.03
+    assert float(metrics.translation_distance(T_local, T)) < 2 * m1.resolution
+    assert float(metrics.rotation_angle_error(biased, T)) > 0.05  # the pick was off
+    local2, info2 = _refine_multi_locally(p1, p2, pick(T), problem, cfg, m1.resolution, kw, {})
+    assert info2["used"] == (info2["map_loss_local"] < info2["map_loss_pick"])
+    assert (local2 is not None) == info2["used"]
+
+
+def merge_pick_template():
+    """An ``IcpResult`` with scalar fields (what ``icp_multi`` reports as ``best``)."""
+    from octomerge_jax.registration import IcpResult
+
+    z = np.int32(0)
+    return IcpResult(T_target_source=np.eye(4, dtype=np.float32), converged=np.bool_(True),
+                     num_iterations=z, num_inliers=z, rmse=np.float32(0), fitness=np.float32(0),
+                     num_close=z, correspondence_distance=np.float32(0), status=z, grid_overflow=z,
+                     swapped=np.bool_(False))
