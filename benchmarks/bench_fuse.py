@@ -137,14 +137,12 @@ ROBOT_RES = {"small": 0.05, "medium": 0.025}
 
 
 def robot_pair(name):
-    """Two simulated robots' maps of the office (``make_two_robot_maps``), each written and read
+    """``name`` a key of ``ROBOT_RES``. Two simulated robots' maps of the office (``make_two_robot_maps``), each written and read
     back as ``.bt`` bytes (maximum likelihood, as maps are exchanged), map 2 transformed into
     map 1's frame by the true transform (``transform_map``): what ``fuse`` gets in a merge. Gap
     cells are far more common here (3-8 % of the refinement) than on the building crops."""
     import octomerge_jax as om
 
-    if name not in ROBOT_RES:
-        raise SystemExit(f"pair kind 'robots' exists for sizes {sorted(ROBOT_RES)}, not {name!r}")
     m1, m2, T = om.make_two_robot_maps("office", resolution=ROBOT_RES[name], seed=0)
     m1, m2 = (om.from_bytes(om.to_bytes(m, True, header=True)) for m in (m1, m2))
     return m1, om.transform_map(m2, T)
@@ -238,7 +236,7 @@ def bench_pairs(sizes, kinds, repeats, exe=None):
         _, rep = F.fuse(m1, m2, return_report=True)  # host capacity planning
         cap = omap.bucket_capacity(int(rep.refined_cells))  # the refinement's own bucket
         n_gap = int(F._fuse_pair(m1, m2, jnp.float32(1), jnp.float32(1), jnp.int32(F._MODE["sum"]), cap,
-                                 True, gap_capacity=None)[2])  # gap cells (the per-slot kernel counts all)
+                                 True, gap_capacity=None)[2])  # gap cells of the refinement
         jax.clear_caches()  # the planning call above may have compiled this capacity already
         t0 = time.perf_counter()
         jax.block_until_ready(F.fuse(m1, m2, capacity=cap).code)

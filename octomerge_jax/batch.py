@@ -51,14 +51,13 @@ from .pipeline import (
     _icp_dict,
     _icp_kwargs,
     _icp_modules,
-    _refine_multi_locally,
+    _rank_and_refine,
     _select_overlap,
     _transform_and_fuse,
     _with_local_step,
     check_resolutions,
     merge,
     overlap_margin,
-    rank_by_map_agreement,
     transform_from_xyz_rpy,
 )
 
@@ -203,10 +202,8 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
                               roll_pitch_offset_rad=rc.roll_pitch_offset_rad,
                               **_icp_kwargs(cfg, s["m1"].resolution))
             jax.block_until_ready(r)
-            problem = reg.prepare_alignment(s["m1"], s["m2"])
-            r, _ = rank_by_map_agreement(s["m1"], s["m2"], r, problem=problem)  # as merge does
-            local = _refine_multi_locally(s["q1"], s["q2"], r.best, problem, cfg, s["m1"].resolution,
-                                          _icp_kwargs(cfg, s["m1"].resolution), s["timings"])
+            r, _, *local = _rank_and_refine(s["m1"], s["m2"], s["q1"], s["q2"], r, cfg,  # as merge does
+                                            _icp_kwargs(cfg, s["m1"].resolution), s["timings"])
             s["timings"]["icp"] = time.perf_counter() - t0
             _finish_icp(i, state, results, r, cfg, local)
 
@@ -264,7 +261,7 @@ def _trim(m: OccupancyMap) -> OccupancyMap:
 
 
 def _finish_icp(i, state, results, r, cfg, local=None):
-    """``local``: ``_refine_multi_locally``'s ``(result or None, info)`` for ``refine="multi"``."""
+    """``local``: ``_rank_and_refine``'s local step ``(result or None, info)`` for ``refine="multi"``."""
     s = state[i]
     refine = cfg.registration.refine
     info = _icp_dict(r, refine)

@@ -417,10 +417,8 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
         result = _timed(timings, "icp", reg.icp_multi, q2, q1, T_1_2_init,
                         yaw_step_rad=rc.yaw_step_rad, roll_pitch_offset_rad=rc.roll_pitch_offset_rad, **kw)
         point_best = int(result.best_index)
-        problem = reg.prepare_alignment(m1, m2)
-        result, map_loss = _timed(timings, "rank", rank_by_map_agreement, m1, m2, result, problem=problem)
+        result, map_loss, local, local_info = _rank_and_refine(m1, m2, p1, p2, result, config, kw, timings)
         best = result.best
-        local, local_info = _refine_multi_locally(p1, p2, best, problem, config, res, kw, timings)
     else:
         result = _timed(timings, "icp", reg.icp, q2, q1, T_1_2_init, **kw)
         best = result
@@ -466,6 +464,18 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
     T_1_2[:3, :3] = R
     T_1_2[3] = (0.0, 0.0, 0.0, 1.0)
     return T_1_2, info, result, counts, q1, q2
+
+
+def _rank_and_refine(m1, m2, p1, p2, result, config: MergeConfig, icp_kwargs: dict, timings: dict):
+    """``refine="multi"`` after ``icp_multi`` (``merge`` and ``merge_batch``): its candidates
+    ranked by map agreement (``rank_by_map_agreement``), then the local step from the pick
+    (``_refine_multi_locally``), both on one prepared alignment problem. Returns ``(ranked
+    result, map losses (k,), local IcpResult or None, local info dict)``."""
+    problem = _timed(timings, "rank", _reg().prepare_alignment, m1, m2)
+    result, map_loss = _timed(timings, "rank", rank_by_map_agreement, m1, m2, result, problem=problem)
+    local, info = _refine_multi_locally(p1, p2, result.best, problem, config, m1.resolution, icp_kwargs,
+                                        timings)
+    return result, map_loss, local, info
 
 
 def _refine_multi_locally(p1, p2, pick, problem, config: MergeConfig, resolution: float,

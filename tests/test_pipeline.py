@@ -348,28 +348,26 @@ def test_multi_local_step_refines_a_biased_pick_and_is_guarded():
     problem = reg.prepare_alignment(m1, m2)
     kw = _icp_kwargs(cfg, m1.resolution)
 
-    def pick(T_pick):
-        return dataclasses.replace(merge_pick_template(), T_target_source=np.asarray(T_pick, np.float32))
-
     biased = transform_from_xyz_rpy(0.15, -0.12, 0.0, 0.0, 0.0, 0.06) @ T
-    local, info = _refine_multi_locally(p1, p2, pick(biased), problem, cfg, m1.resolution, kw, {})
+    local, info = _refine_multi_locally(p1, p2, _pick(biased), problem, cfg, m1.resolution, kw, {})
     assert info["used"] and local is not None, info
     assert info["map_loss_local"] < info["map_loss_pick"]
     T_local = np.asarray(local.T_target_source, np.float64)
     assert float(metrics.rotation_angle_error(T_local, T)) < 0.03
     assert float(metrics.translation_distance(T_local, T)) < 2 * m1.resolution
     assert float(metrics.rotation_angle_error(biased, T)) > 0.05  # the pick was off
-    local2, info2 = _refine_multi_locally(p1, p2, pick(T), problem, cfg, m1.resolution, kw, {})
+    local2, info2 = _refine_multi_locally(p1, p2, _pick(T), problem, cfg, m1.resolution, kw, {})
     assert info2["used"] == (info2["map_loss_local"] < info2["map_loss_pick"])
     assert (local2 is not None) == info2["used"]
 
 
-def merge_pick_template():
-    """An ``IcpResult`` with scalar fields (what ``icp_multi`` reports as ``best``)."""
+def _pick(T_pick):
+    """An ``IcpResult`` with scalar fields and transform ``T_pick`` (what ``icp_multi`` reports
+    as ``best``)."""
     from octomerge_jax.registration import IcpResult
 
     z = np.int32(0)
-    return IcpResult(T_target_source=np.eye(4, dtype=np.float32), converged=np.bool_(True),
+    return IcpResult(T_target_source=np.asarray(T_pick, np.float32), converged=np.bool_(True),
                      num_iterations=z, num_inliers=z, rmse=np.float32(0), fitness=np.float32(0),
                      num_close=z, correspondence_distance=np.float32(0), status=z, grid_overflow=z,
                      swapped=np.bool_(False))

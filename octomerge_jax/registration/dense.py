@@ -460,13 +460,13 @@ def _corners(m1: OccupancyMap, y):
     return w, known, m1.log_odds[row]
 
 
-def _signed_field(m1: OccupancyMap, y):
-    """``(s_1 (P,), coverage (P,))`` at points ``y (P, 3)`` [m] of map 1's frame (module
+def _signed_field(corners):
+    """``(s_1 (P,), coverage (P,))`` from ``_corners(m1, y)`` at points ``y`` (module
     docstring): ``s_1 = sum_c w_c k_c tanh(l_c / 2)`` and ``coverage = sum_c w_c k_c`` over the
     8 voxel centres ``c`` around each point, with trilinear weights ``w_c`` and ``k_c`` = the
     centre is known. The same values as ``2 sample(.., "thesis") - coverage`` but with one
     leaf lookup per corner and no mode switch (cheaper to compile and to run)."""
-    w, known, lo = _corners(m1, y)
+    w, known, lo = corners
     s = jnp.where(known, jnp.tanh(0.5 * lo), 0.0)
     return jnp.sum(w * s, axis=-1), jnp.sum(w * known.astype(w.dtype), axis=-1)
 
@@ -480,13 +480,15 @@ def _at(problem: AlignProblem, i):
 
 
 def _level_terms(lv, T_1_2):
+    """``(loss, coverage (P,), _corners(...))`` of a level under ``T_1_2``."""
     map1, scale, pts, signed, w = lv[:5]
     y = rigid.transform_points(jnp.asarray(T_1_2, jnp.float32), pts)
-    s1, cov = _signed_field(map1, y * scale)
+    corners = _corners(map1, y * scale)
+    s1, cov = _signed_field(corners)
     a = lv[6]
     den = a * (jnp.sum(w * cov) + _OVERLAP_PRIOR * jnp.sum(w)) + (1.0 - a) * jnp.sum(w)
     loss = -jnp.sum(w * signed * s1) / den
-    return loss, s1, cov
+    return loss, cov, corners
 
 
 def problem_loss(problem: AlignProblem, T_1_2, level: int = -1):
@@ -525,13 +527,11 @@ def _fine_scores(problem: AlignProblem, T_1_2):
     """``(loss, overlap, agreement)`` at the finest level under ``T_1_2 (4, 4)`` (``AlignResult``
     fields of the same names)."""
     fine = _at(problem, problem.num_levels - 1)
-    loss, _, cov = _level_terms(fine, T_1_2)
-    map1, scale, pts = fine[:3]
+    loss, cov, (_, known, lo) = _level_terms(fine, T_1_2)
     w_occ = jnp.where(fine[5], fine[4], 0.0)
     overlap = jnp.sum(w_occ * cov) / jnp.maximum(jnp.sum(w_occ), 1e-30)
     # on map 1's surfaces: one of the 8 voxels the point interpolates from is occupied
-    _, known, lo = _corners(map1, rigid.transform_points(jnp.asarray(T_1_2, jnp.float32), pts) * scale)
-    near = jnp.any(known & (lo >= map1.params.occupancy_threshold_log_odds), axis=-1)
+    near = jnp.any(known & (lo >= fine[0].params.occupancy_threshold_log_odds), axis=-1)
     agree = jnp.sum(w_occ * cov * near.astype(jnp.float32)) / jnp.maximum(jnp.sum(w_occ * cov), 1e-30)
     return loss, overlap, agree
 
