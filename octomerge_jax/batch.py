@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import math
 import os
 import sys
 import time
@@ -51,9 +50,9 @@ from .pipeline import (
     _icp_dict,
     _icp_kwargs,
     _icp_modules,
+    _multi_candidates,
     _rank_and_refine,
     _select_overlap,
-    _transform_and_fuse,
     _with_local_step,
     check_resolutions,
     merge,
@@ -198,11 +197,10 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
         for i in list(state):
             s = state[i]
             t0 = time.perf_counter()
-            r = reg.icp_multi(s["q2"], s["q1"], s["T_init"], yaw_step_rad=rc.yaw_step_rad,
-                              roll_pitch_offset_rad=rc.roll_pitch_offset_rad,
-                              **_icp_kwargs(cfg, s["m1"].resolution))
+            r, near = _multi_candidates(s["m1"], s["m2"], s["q1"], s["q2"], s["T_init"], cfg,
+                                        _icp_kwargs(cfg, s["m1"].resolution), s["timings"])
             jax.block_until_ready(r)
-            r, _, *local = _rank_and_refine(s["m1"], s["m2"], s["q1"], s["q2"], r, cfg,  # as merge does
+            r, _, *local = _rank_and_refine(s["m1"], s["m2"], s["q1"], s["q2"], r, near, cfg,  # as merge does
                                             _icp_kwargs(cfg, s["m1"].resolution), s["timings"])
             s["timings"]["icp"] = time.perf_counter() - t0
             _finish_icp(i, state, results, r, cfg, local)

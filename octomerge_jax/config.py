@@ -47,6 +47,7 @@ REFINE_CHOICES = ("icp", "multi", "none", "dense", "icp+dense")
 OVERLAP_CHOICES = ("voxel", "bbox", "none")
 ON_NOT_CONVERGED_CHOICES = ("warn", "error", "use_initial")
 COARSE_MATCHING_CHOICES = ("centroid", "symmetric", "nearest")  # registration.icp.COARSE_MATCHING
+HYPOTHESES_CHOICES = ("yaw_grid", "correlation", "both")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,7 +78,17 @@ class RegistrationConfig:
       against 0.013 rad, not at 0.05 m, 0.008 against 0.005; not the default: it loses basins
       at coarse cells) or ``"nearest"`` (Open3D's fixed point).
       See ``registration.icp``.
-    - ``yaw_step_rad``, ``roll_pitch_offset_rad``: hypotheses of ``refine="multi"``.
+    - ``hypotheses``: where ``refine="multi"`` starts its ICP runs: ``"yaw_grid"`` (the guess
+      turned about map 2's centroid every ``yaw_step_rad``, plus +-``roll_pitch_offset_rad`` of
+      roll and pitch: keeps the guess's translation), ``"correlation"`` (the
+      ``correlation_hypotheses`` best poses of ``registration.correlation_search``: a fine yaw
+      grid x every translation, scored by the maps' occupancy agreement; for partial overlap
+      and guesses whose translation is metres off) or ``"both"``. With ``"both"`` the
+      correlation candidates' pick is taken over the yaw grid's (each after its local step)
+      only when its map loss is lower by more than ``far_margin`` (relative): where the maps
+      agree about as well at a wrong pose, the guess decides. Measured: far right pose 4.6 %
+      (tests' hall) and 12 % (simulated office, 0.05 m) lower than the near wrong one; a
+      wrong far pose 2 % lower than the truth (simulated lab, 0.05 m).
     - ``on_not_converged``: ICP stopped at ``max_iterations``: ``"warn"`` (use its transform,
       report ``converged = false``), ``"error"`` (fail) or ``"use_initial"`` (merge with the
       guess). Too few inliers is always an error unless ``refine="none"``.
@@ -97,6 +108,9 @@ class RegistrationConfig:
     coarse_matching: str = "centroid"
     yaw_step_rad: float = math.pi / 6
     roll_pitch_offset_rad: float = 0.1
+    hypotheses: str = "yaw_grid"
+    correlation_hypotheses: int = 8
+    far_margin: float = 0.03
     on_not_converged: str = "warn"
 
 
@@ -191,15 +205,19 @@ def validate(cfg: MergeConfig) -> None:
     _choice(r.overlap, OVERLAP_CHOICES, "registration.overlap")
     _choice(r.on_not_converged, ON_NOT_CONVERGED_CHOICES, "registration.on_not_converged")
     _choice(r.coarse_matching, COARSE_MATCHING_CHOICES, "registration.coarse_matching")
+    _choice(r.hypotheses, HYPOTHESES_CHOICES, "registration.hypotheses")
     _choice(t.interpolation, ("trilinear", "nearest", "thesis"), "transform.interpolation")
     _choice(t.space, ("probability", "log_odds"), "transform.space")
     _choice(f.rule, ("sum", "max", "weighted"), "fuse.rule")
     for key, value in (("registration.max_iterations", r.max_iterations),
                        ("registration.min_inliers", r.min_inliers),
                        ("registration.cell_capacity", r.cell_capacity),
+                       ("registration.correlation_hypotheses", r.correlation_hypotheses),
                        ("transform.chunk_bricks", t.chunk_bricks)):
         if value < 1:
             raise ValueError(f"{key} must be >= 1, got {value}")
+    if not (math.isfinite(r.far_margin) and r.far_margin >= 0):
+        raise ValueError(f"registration.far_margin must be a finite number >= 0, got {r.far_margin}")
     if r.min_overlap_points < 0:
         raise ValueError(f"registration.min_overlap_points must be >= 0, got {r.min_overlap_points}")
     if not 0.0 < r.shrink_factor < 1.0:

@@ -4,6 +4,7 @@ error metrics and rigid-transform helpers."""
 
 # ``registration.icp`` is the function; reach the module as ``octomerge_jax.registration.icp``
 # through ``importlib.import_module`` (the function shadows the module attribute).
+from .correlation import CorrelationResult, correlation_search
 from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result,
                     default_levels, fused_log_odds, pose_from_increment, prepare_alignment,
                     problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
@@ -20,6 +21,7 @@ from .rendezvous import (lift_2d, relative_pose_2d, relative_pose_3d, rendezvous
 from .rigid import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quaternion, to_xyz_rpy, transform_points
 
 __all__ = [
+    "CorrelationResult", "correlation_search",
     "AlignProblem", "AlignResult", "align_dense", "alignment_loss", "best_result", "default_levels",
     "fused_log_odds", "pose_from_increment", "prepare_alignment", "problem_loss",
     "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
