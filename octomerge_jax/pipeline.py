@@ -34,7 +34,7 @@ import jax
 import numpy as np
 
 from .config import MergeConfig, validate
-from .map import OccupancyMap
+from .map import OccupancyMap, bucket_capacity
 
 __all__ = [
     "MergeError",
@@ -501,19 +501,18 @@ def _local_candidates(p1, p2, hypotheses, config: MergeConfig, resolution: float
     reg = _reg()
     icp_mod, _ = _icp_modules()
     rc = config.registration
+    hyps = np.asarray(hypotheses, np.float64)
+    subsets = [_select_overlap(p1, p2, T, rc.overlap, overlap_margin(config, resolution)) for T in hyps]
+    # every subset padded to one capacity per cloud: one compiled ICP for all poses
+    caps = [bucket_capacity(max(q[i].shape[0] for q in subsets)) for i in (0, 1)]
+    pad = lambda q, cap: np.concatenate([q, np.zeros((cap - q.shape[0], 3), np.float32)])  # noqa: E731
     out = []
-    for T in np.asarray(hypotheses, np.float64):
-        q1, q2 = _select_overlap(p1, p2, T, rc.overlap, overlap_margin(config, resolution))
+    for T, (q1, q2) in zip(hyps, subsets):
         if min(q1.shape[0], q2.shape[0]) >= rc.min_overlap_points:
-            out.append(jax.tree_util.tree_map(np.asarray, _timed(timings, "icp_correlation", reg.icp, q2, q1, T,
-                                                                  **icp_kwargs)))
+            r = _timed(timings, "icp_correlation", reg.icp, pad(q2, caps[1]), pad(q1, caps[0]), T,
+                       source_count=q2.shape[0], target_count=q1.shape[0], **icp_kwargs)
+            out.append(jax.tree_util.tree_map(np.asarray, r))
             continue
-        z = np.int32(0)
-        out.append(reg.IcpResult(T_target_source=T.astype(np.float32), converged=np.bool_(False),
-                                 num_iterations=z, num_inliers=z, rmse=np.float32(np.inf),
-                                 fitness=np.float32(0), num_close=z, correspondence_distance=np.float32(0),
-                                 status=np.int32(icp_mod.STATUS_TOO_FEW_INLIERS), grid_overflow=z,
-                                 swapped=np.bool_(False)))
     cands = jax.tree_util.tree_map(lambda *xs: np.stack(xs), *out)
     scores = cands.num_close.astype(np.float32) - cands.rmse / np.float32(2.0 * resolution)
     best = int(np.argmax(np.where(np.isfinite(scores), scores, -np.inf)))
