@@ -16,6 +16,7 @@ import pytest
 
 from octomerge_jax import registration as reg
 from octomerge_jax import tree
+from octomerge_jax.batch import merge_batch
 from octomerge_jax.config import MergeConfig
 from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
 from octomerge_jax.registration.correlation import _grid_len
@@ -153,3 +154,8 @@ def test_merge_multi_with_correlation_hypotheses_recovers_the_truth():
     assert len(out["both"].icp["map_loss"]) == 16 + 8
     if far:
         assert out["both"].displacement < 0.1
+    # merge_batch takes the same steps (its own copy of the multi path would drift)
+    cfg = MergeConfig().replace(registration={"refine": "multi", "hypotheses": "correlation"})
+    (b,) = merge_batch([(m1, m2, bad_guess(), T_TRUE)], config=cfg)
+    assert b.status == "ok", b.message
+    np.testing.assert_allclose(b.report.T_1_2, out["correlation"].T_1_2, atol=1e-3)
