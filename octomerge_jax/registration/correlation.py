@@ -48,16 +48,18 @@ __all__ = ["CorrelationResult", "correlation_search"]
 _D = morton.TREE_DEPTH
 
 
-@partial(jax.tree_util.register_dataclass, data_fields=["hypotheses", "scores", "yaws"], meta_fields=[])
+@partial(jax.tree_util.register_dataclass, data_fields=["hypotheses", "scores", "yaws"], meta_fields=["cell"])
 @dataclasses.dataclass(frozen=True)
 class CorrelationResult:
     """``hypotheses (k, 4, 4)`` float64 ``T_1_2`` (map 2 -> map 1), best first; ``scores (k,)``
     their correlation divided by the number of map 2's occupied cells (1 = every cell on a
-    surface of map 1); ``yaws (k,)`` [rad] the yaw turned onto the guess's rotation."""
+    surface of map 1); ``yaws (k,)`` [rad] the yaw turned onto the guess's rotation; ``cell``
+    [m] the grid's cell edge."""
 
     hypotheses: np.ndarray
     scores: np.ndarray
     yaws: np.ndarray
+    cell: float
 
 
 def _grid_len(n: int) -> int:
@@ -276,7 +278,7 @@ def correlation_search(target, source, T_1_2_init, *, cell: float | None = None,
         # floor(q' / cell) + offset, which lands on map 1's cell (that) + t + lo1
         Ts[n, :3, :3] = R
         Ts[n, :3, 3] = -R @ centre + (offset + tj + lo1) * cell - np.asarray([0.0, 0.0, zmin])
-    return CorrelationResult(Ts, np.asarray([c[0] for c in chosen]), yaws[[c[1] for c in chosen]])
+    return CorrelationResult(Ts, np.asarray([c[0] for c in chosen]), yaws[[c[1] for c in chosen]], float(cell))
 
 
 def _points(p, name):

@@ -541,6 +541,14 @@ def _scores_jit(problem, T_1_2s):
     return jax.vmap(lambda T: _fine_scores(problem, T))(T_1_2s)
 
 
+@partial(jax.jit, static_argnames="level")
+def level_losses(problem: AlignProblem, T_1_2s, level: int = -1):
+    """``problem_loss`` at ``level`` (index into ``problem.levels``) for each of ``T_1_2s (k,
+    4, 4)``: ``(k,)`` float32, lower is better. A coarse level scores poses a cell or so from
+    a minimum close to it (``correlation_search``'s poses are re-ranked this way)."""
+    return jax.vmap(lambda T: problem_loss(problem, T, level))(jnp.asarray(T_1_2s, jnp.float32))
+
+
 def score_alignment(problem: AlignProblem, T_1_2s):
     """Score candidate transforms ``T_1_2s (k, 4, 4)`` (e.g. ``icp_multi``'s candidates) by the
     finest-level alignment loss, without solving: ``(loss, overlap, agreement)``, each ``(k,)``
