@@ -197,11 +197,12 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
         for i in list(state):
             s = state[i]
             t0 = time.perf_counter()
-            r, near, problem = _multi_candidates(s["m1"], s["m2"], s["q1"], s["q2"], s["T_init"], cfg,
-                                                 _icp_kwargs(cfg, s["m1"].resolution), s["timings"])
+            r, origin, problem = _multi_candidates(s["m1"], s["m2"], s["q1"], s["q2"], s["T_init"], cfg,
+                                                   _icp_kwargs(cfg, s["m1"].resolution), s["timings"])
             jax.block_until_ready(r)
-            r, _, *local = _rank_and_refine(s["m1"], s["m2"], s["q1"], s["q2"], r, near, cfg,  # as merge does
-                                            _icp_kwargs(cfg, s["m1"].resolution), s["timings"], problem)
+            r, _, *local = _rank_and_refine(s["m1"], s["m2"], s["q1"], s["q2"], r, origin == "yaw_grid",
+                                            cfg, _icp_kwargs(cfg, s["m1"].resolution), s["timings"],  # as merge
+                                            problem, origin)
             s["timings"]["icp"] = time.perf_counter() - t0
             _finish_icp(i, state, results, r, cfg, local)
 

@@ -414,10 +414,10 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
             f"try --refine multi", "no_overlap")
     kw = _icp_kwargs(config, res)
     if rc.refine == "multi":
-        result, near, problem = _multi_candidates(m1, m2, q1, q2, T_1_2_init, config, kw, timings)
+        result, origin, problem = _multi_candidates(m1, m2, q1, q2, T_1_2_init, config, kw, timings)
         point_best = int(result.best_index)
-        result, map_loss, local, local_info = _rank_and_refine(m1, m2, p1, p2, result, near, config, kw,
-                                                               timings, problem)
+        result, map_loss, local, local_info = _rank_and_refine(m1, m2, p1, p2, result, origin == "yaw_grid",
+                                                               config, kw, timings, problem, origin)
         best = result.best
     else:
         result = _timed(timings, "icp", reg.icp, q2, q1, T_1_2_init, **kw)
@@ -480,10 +480,11 @@ def _multi_candidates(m1, m2, p1, p2, T_1_2_init, config: MergeConfig, icp_kwarg
     the level nearest twice its cell (0.4 m at the defaults: trilinear, so smoother than the
     search's cells) and the best ``correlation_hypotheses`` refined: on the simulated lab
     (0.05 m) the pose nearest the truth (0.2 m) was the search's 37th and the re-ranking's
-    2nd (office: 1st and 1st). (ICP on the lab's overlap from it stalls at 0.2 m; the dense
-    alignment from it reaches 0.027 m, status converged, while it reports the lab's wrong
-    poses, which have lower losses, as poor agreement: not used yet.) Returns ``(IcpMultiResult, near_guess (k,) bool: which candidates the yaw grid
-    made, the prepared alignment problem or None)``."""
+    2nd (office: 1st and 1st). ICP on the lab's overlap from it stalls at 0.2 m, so the best
+    ``correlation_dense`` of them also get the dense alignment (``_dense_candidates``; timed
+    as ``dense_correlation``). Returns ``(IcpMultiResult, origin (k,) str: "yaw_grid",
+    "correlation+icp" or "correlation+dense" per candidate, the prepared alignment problem or
+    None)``."""
     reg = _reg()
     rc = config.registration
     T0 = np.asarray(T_1_2_init, np.float64)
@@ -501,11 +502,46 @@ def _multi_candidates(m1, m2, p1, p2, T_1_2_init, config: MergeConfig, icp_kwarg
         level = int(np.argmin(np.abs(np.log2(cells / (2.0 * found.cell)))))
         loss = np.asarray(_timed(timings, "correlation", reg.dense.level_losses, problem, found.hypotheses,
                                  level=level))
-        keep = np.argsort(np.where(np.isfinite(loss), loss, np.inf), kind="stable")[:k]
-        parts.append(_local_candidates(p1, p2, found.hypotheses[keep], config, m1.resolution, icp_kwargs,
+        order = np.argsort(np.where(np.isfinite(loss), loss, np.inf), kind="stable")
+        parts.append(_local_candidates(p1, p2, found.hypotheses[order[:k]], config, m1.resolution, icp_kwargs,
                                        timings))
-    result = parts[0] if len(parts) == 1 else _concat_candidates(*parts)
-    return result, np.arange(result.scores.shape[0]) < num_grid, problem
+        if rc.correlation_dense > 0:
+            parts.append(_dense_candidates(problem, found.hypotheses[order[:rc.correlation_dense]], timings))
+    result = parts[0]
+    for part in parts[1:]:
+        result = _concat_candidates(result, part)
+    origin = np.concatenate([np.full(np.asarray(part.scores).shape[0], name) for part, name in
+                             zip(parts, [n for n, on in (("yaw_grid", num_grid > 0), ("correlation+icp", True),
+                                                         ("correlation+dense", True)) if on])])
+    return result, origin, problem
+
+
+def _dense_candidates(problem, hypotheses, timings: dict):
+    """``registration.solve_alignment`` (the dense, map-to-map alignment) from each pose of
+    ``hypotheses (k, 4, 4)`` as an ``IcpMultiResult``: a result with status converged or
+    max-iterations is usable (ICP status 0), any other (poor agreement, too little overlap)
+    is not (status too few inliers); the point statistics are not computed (0 / NaN). On the
+    simulated lab (0.05 m) ICP on the overlap stalled 0.2 m from the truth where this reached
+    0.027 m, and it reported the wrong poses that agree better than the truth as poor
+    agreement."""
+    reg = _reg()
+    icp_mod, _ = _icp_modules()
+    a = _timed(timings, "dense_correlation", reg.solve_alignment, problem, np.asarray(hypotheses, np.float64))
+    status = np.asarray(a.status)
+    ok = np.isin(status, (0, 1))
+    k = status.shape[0]
+    nan = np.full(k, np.nan, np.float32)
+    zero = np.zeros(k, np.int32)
+    cands = reg.IcpResult(
+        T_target_source=np.asarray(a.T_1_2, np.float32), converged=status == 0,
+        num_iterations=np.asarray(a.num_iterations, np.int32), num_inliers=zero, rmse=nan, fitness=nan,
+        num_close=zero, correspondence_distance=nan,
+        status=np.where(ok, icp_mod.STATUS_CONVERGED, icp_mod.STATUS_TOO_FEW_INLIERS).astype(np.int32),
+        grid_overflow=zero, swapped=np.zeros(k, bool))
+    scores = -np.asarray(a.loss, np.float32)
+    best = int(np.argmax(np.where(ok & np.isfinite(scores), scores, -np.inf)))
+    return reg.IcpMultiResult(jax.tree_util.tree_map(lambda x: x[best], cands), cands, np.int32(best), scores,
+                              np.asarray(hypotheses, np.float32), np.arange(k, dtype=np.int32))
 
 
 def _local_candidates(p1, p2, hypotheses, config: MergeConfig, resolution: float, icp_kwargs: dict,
@@ -544,24 +580,29 @@ def _concat_candidates(a, b):
 
 
 def _rank_and_refine(m1, m2, p1, p2, result, near_guess, config: MergeConfig, icp_kwargs: dict,
-                     timings: dict, problem=None):
+                     timings: dict, problem=None, origin=None):
     """``refine="multi"`` after ``icp_multi`` (``merge`` and ``merge_batch``): its candidates
     ranked by map agreement (``rank_by_map_agreement``), then the local step from the pick
     (``_refine_multi_locally``), both on one prepared alignment problem.
 
-    With candidates from both sources (``near_guess`` from ``_multi_hypotheses``: the yaw
-    grid's, near the guess, and ``correlation_search``'s, anywhere), each group's pick gets
+    With candidates from both sources (``near_guess``: ``_multi_candidates``'s origin is the yaw
+    grid, near the guess; the others come from ``correlation_search``, anywhere), each group's pick gets
     its local step, and the far one is taken only when its map loss is lower than the near
     one's by more than ``registration.far_margin`` (relative): maps can agree about as well
     at a wrong pose as at the truth (simulated lab at 0.05 m: a pose 6.6 m off -0.276, the
     truth -0.271), and then the guess decides. Returns ``(ranked result, map losses (k,),
-    local IcpResult or None, local info dict)``."""
-    problem = _timed(timings, "rank", _reg().prepare_alignment, m1, m2)
+    local IcpResult or None, local info dict)``. ``problem``: a prepared alignment to reuse;
+    ``origin`` ``(k,)`` str: where each candidate came from (the pick's goes to the info dict
+    as ``pick_origin``)."""
+    if problem is None:
+        problem = _timed(timings, "rank", _reg().prepare_alignment, m1, m2)
     near = None if near_guess is None else np.asarray(near_guess, bool)
     if near is None or near.all() or not near.any():
         result, map_loss = _timed(timings, "rank", rank_by_map_agreement, m1, m2, result, problem=problem)
         local, info = _refine_multi_locally(p1, p2, result.best, problem, config, m1.resolution, icp_kwargs,
                                             timings)
+        if origin is not None:
+            info["pick_origin"] = str(origin[int(result.best_index)])
         return result, map_loss, local, info
     picks = {}
     for name, among in (("near", near), ("far", ~near)):
@@ -575,6 +616,8 @@ def _rank_and_refine(m1, m2, p1, p2, result, near_guess, config: MergeConfig, ic
     chosen = "far" if l_far < l_near - config.registration.far_margin * abs(l_near) else "near"
     r, local, info, _ = picks[chosen]
     info = {**info, "chosen": chosen, "loss_near": round(float(l_near), 5), "loss_far": round(float(l_far), 5)}
+    if origin is not None:
+        info["pick_origin"] = str(origin[int(r.best_index)])
     return r, map_loss, local, info
 
 

@@ -143,8 +143,10 @@ def test_merge_multi_with_correlation_hypotheses_recovers_the_truth():
     cfg = MergeConfig().replace(registration={"refine": "multi", "hypotheses": "correlation"})
     _, rep = merge(m1, m2, bad_guess(), config=cfg, T_1_2_true=T_TRUE)
     assert rep.displacement < 0.1, rep.displacement
-    assert "correlation" in rep.timings and "icp_correlation" in rep.timings
-    assert len(rep.icp["map_loss"]) == cfg.registration.correlation_hypotheses
+    assert {"correlation", "icp_correlation", "dense_correlation"} <= set(rep.timings)
+    rc = cfg.registration
+    assert len(rep.icp["map_loss"]) == rc.correlation_hypotheses + rc.correlation_dense
+    assert rep.icp["local"]["pick_origin"] in ("correlation+icp", "correlation+dense")
     (b,) = merge_batch([(m1, m2, bad_guess(), T_TRUE)], config=cfg)
     assert b.status == "ok", b.message
     np.testing.assert_allclose(b.report.T_1_2, rep.T_1_2, atol=1e-3)
@@ -178,3 +180,19 @@ def test_both_sources_take_the_far_pick_only_by_the_margin(monkeypatch, loss_nea
     assert info["chosen"] == chosen
     assert int(r.best_index) == (2 if chosen == "far" else 0) and local == f"local from {r.best_index}"
     assert info["loss_near"] == pytest.approx(loss_near) and info["loss_far"] == pytest.approx(loss_far)
+
+
+def test_cli_flag_selects_the_hypotheses():
+    from octomerge_jax.cli import build_parser
+    from octomerge_jax.cli.merge import config_from_args
+
+    args = build_parser().parse_args(["merge", "a.bt", "b.bt", "out.bt", "--refine", "multi",
+                                      "--hypotheses", "correlation"])
+    rc = config_from_args(args).registration
+    assert (rc.refine, rc.hypotheses) == ("multi", "correlation")
+    assert config_from_args(build_parser().parse_args(["merge", "a.bt", "b.bt", "o.bt"])).registration.hypotheses \
+        == "yaw_grid"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["merge", "a.bt", "b.bt", "o.bt", "--hypotheses", "ransac"])
+    with pytest.raises(ValueError, match="registration.hypotheses"):
+        MergeConfig().replace(registration={"hypotheses": "ransac"})

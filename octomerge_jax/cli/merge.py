@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..config import COARSE_MATCHING_CHOICES, REFINE_CHOICES
+from ..config import COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, REFINE_CHOICES
 
 import argparse
 import math
@@ -25,6 +25,7 @@ EPILOG = """examples:
   octomerge merge robot1.ot robot2.ot merged.ot 1.5 -0.8 0 0 0 0.785   # thesis argument order
   octomerge merge a.bt b.bt out.bt --rpy 0 0 45 --degrees --refine multi --report r.json --figure icp.png
   octomerge merge a.bt b.bt out.bt --refine none --xyz 2 0 0            # trust the guess
+  octomerge merge a.bt b.bt out.bt --refine multi --hypotheses correlation  # partial overlap, poor guess
 
 The guess T_1_2 maps map 2's frame into map 1's: x y z in metres, roll pitch yaw in radians
 (R = Rz(yaw) Ry(pitch) Rx(roll), as OctoMap's Pose6D). OUT is .bt (maximum likelihood) or .ot
@@ -57,6 +58,9 @@ def register(subparsers) -> None:
     a = p.add_argument_group("pipeline (override --config)")
     a.add_argument("--refine", choices=REFINE_CHOICES,
                    help="icp (default), multi (multi-hypothesis ICP for poor guesses) or none")
+    a.add_argument("--hypotheses", choices=HYPOTHESES_CHOICES,
+                   help="starts of --refine multi: yaw_grid (default: the guess turned in yaw), correlation "
+                        "(global search over yaw x translation, for partial overlap and guesses metres off) or both")
     a.add_argument("--overlap", choices=("voxel", "bbox", "none"), help="points fed to ICP (default bbox, thesis Alg. 2)")
     a.add_argument("--interpolation", choices=("trilinear", "nearest", "thesis"),
                    help="resampling of map 2 (default trilinear)")
@@ -103,7 +107,7 @@ def config_from_args(args):
     cfg = load_config(args.config) if getattr(args, "config", None) else MergeConfig()
     reg, tr, fu = {}, {}, {}
     for key, section in (("refine", reg), ("overlap", reg), ("interpolation", tr), ("rule", fu),
-                         ("max_iterations", reg), ("coarse_matching", reg)):
+                         ("max_iterations", reg), ("coarse_matching", reg), ("hypotheses", reg)):
         v = getattr(args, key, None)
         if v is not None:
             section[key] = v
