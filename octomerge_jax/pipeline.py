@@ -564,6 +564,12 @@ def _local_candidates(p1, p2, hypotheses, config: MergeConfig, resolution: float
                        source_count=q2.shape[0], target_count=q1.shape[0], **icp_kwargs)
             out.append(jax.tree_util.tree_map(np.asarray, r))
             continue
+        z = np.int32(0)
+        out.append(reg.IcpResult(T_target_source=T.astype(np.float32), converged=np.bool_(False),
+                                 num_iterations=z, num_inliers=z, rmse=np.float32(np.nan),
+                                 fitness=np.float32(0), num_close=z, correspondence_distance=np.float32(np.nan),
+                                 status=np.int32(icp_mod.STATUS_TOO_FEW_INLIERS), grid_overflow=z,
+                                 swapped=np.bool_(False)))
     cands = jax.tree_util.tree_map(lambda *xs: np.stack(xs), *out)
     scores = cands.num_close.astype(np.float32) - cands.rmse / np.float32(2.0 * resolution)
     best = int(np.argmax(np.where(np.isfinite(scores), scores, -np.inf)))

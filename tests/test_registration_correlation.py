@@ -196,3 +196,20 @@ def test_cli_flag_selects_the_hypotheses():
         build_parser().parse_args(["merge", "a.bt", "b.bt", "o.bt", "--hypotheses", "ransac"])
     with pytest.raises(ValueError, match="registration.hypotheses"):
         MergeConfig().replace(registration={"hypotheses": "ransac"})
+
+
+def test_local_candidates_keep_one_row_per_pose_and_mark_poses_without_overlap():
+    """A correlation pose with too little common space keeps its row (status too few inliers,
+    so ranking cannot pick it): rows stay aligned with the hypotheses they came from."""
+    from octomerge_jax.pipeline import _icp_kwargs, _local_candidates
+
+    m1, m2 = pair()
+    p1 = np.asarray(reg.occupied_points(m1), np.float32)
+    p2 = np.asarray(reg.occupied_points(m2), np.float32)
+    far = T_TRUE.copy()
+    far[:3, 3] += (200.0, 0.0, 0.0)
+    cfg = MergeConfig()
+    r = _local_candidates(p1, p2, np.stack([far, T_TRUE]), cfg, RES, _icp_kwargs(cfg, RES), {})
+    assert np.asarray(r.candidates.status).tolist()[0] == 2 and int(r.candidates.status[1]) in (0, 1)
+    np.testing.assert_allclose(r.candidates.T_target_source[0], far, atol=1e-5)
+    assert int(r.best_index) == 1 and r.hypotheses.shape == (2, 4, 4)
