@@ -7,26 +7,31 @@ right yaw starts metres off and whole-cloud ICP slides it along a corridor or tu
 the other map's larger part (measured on the simulated office at 0.05 m from a 1.7 rad yaw
 error: the four candidates with the right yaw ended 2.1-2.9 m off; neither a longer ICP nor
 the dense alignment from them left the slide). This is the missing global step: for every
-yaw ``theta_j`` of a fine grid (the guess's roll and pitch kept), map 2's occupied cells are
-correlated with a *signed* grid of map 1 over all translations at once (one FFT product per
-yaw), and the best-scoring poses become ICP's hypotheses.
+yaw ``theta_j`` of a fine grid (the guess's roll and pitch kept), map 2's cells are
+correlated with *signed* grids of map 1 over all translations at once (FFT products per yaw),
+and the best-scoring poses become the starts of the local refinement.
 
-**Score** of a pose: ``sum_x g2(x) g1(x + t)`` over grid cells of edge ``cell`` [m], with
-``g2`` = 1 where map 2 (rotated by ``theta_j``) has an occupied point, and ``g1`` = +1 on map
-1's occupied cells, +1/2 next to them (one cell of tolerance for surfaces voxelised in two
-frames), ``-free_weight`` on its free cells and 0 in unknown space. So it counts map 2's
-surfaces landing on map 1's surfaces and charges those landing in map 1's observed free
-space: it rewards overlap (the truth of a partial overlap is the pose that explains the most
-surface) where free space does not refute it. With points only (no map 1), there is no free
-space and the score is the surface overlap alone. Unlike ICP, no correspondence distance
-limits where the optimum can lie: the whole translation range of the two grids is searched.
+**Score** of a pose, over grid cells of edge ``cell`` [m]: ``N(t) / (D(t) + 0.1 W)`` with
+``N(t) = sum_x g2(x) s1(x + t)`` and ``D(t) = sum_x w2(x) k1(x + t)``. Map 2's cells (at
+``cell / 2``, moved by ``theta_j``) carry weights ``w2`` (its occupied cells 1 in total, its
+free cells ``free_weight`` in total; ``W`` = all weight) and ``g2 = +w2`` occupied, ``-w2``
+free. ``s1`` is map 1's signed occupancy (+1 occupied, -1 free, 0 unknown) and ``k1`` its
+known indicator, both blurred by ``[1/4, 1/2, 1/4]`` per axis (one cell of tolerance for
+surfaces voxelised in two frames). So ``N`` counts agreement (surface on surface, free on
+free) minus disagreement, and ``D`` the commonly known space: the dense loss's normalisation
+(``dense.py``), which keeps a slide into more overlap from scoring better by overlap alone;
+the ``0.1 W`` keeps a sliver of overlap from scoring as perfect. With points (no map), map 1
+has no free space and ``D`` is ``W``: the score is surface overlap. Unlike ICP, no
+correspondence distance limits where the optimum can lie: the whole translation range of the
+two grids is searched.
 
-**Cost**: per yaw one scatter of map 2's cells, one real FFT pair of the padded grid
-(``S1 + S2 - 1`` cells per axis, rounded up to a fast size) and a separable max filter for
+**Cost**: per yaw two scatters of map 2's cells and two real FFT pairs of the padded grid
+(``S1 + S2 - 1`` cells per axis, rounded up to ``2^a`` or ``3 * 2^a``) and a separable max filter for
 the local peaks; the yaws run one after another (``lax.map``) under one ``jit``. ``cell``
 defaults to ``max(0.2 m, 2 res)`` rounded to ``res * 2^k`` and grows (x2) until the padded
 grid has at most ``max_cells`` cells. The yaw step defaults to ``cell / r`` (one cell of
-arc at the source's RMS radius ``r`` [m]), clipped to 1-6 degrees.
+arc at the source's RMS radius ``r`` [m]), clipped to 1-6 degrees, and the number of yaws
+is rounded up to a multiple of 8 (with the grid lengths: few compiled shapes).
 """
 
 from __future__ import annotations
