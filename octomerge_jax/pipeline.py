@@ -492,8 +492,7 @@ def _multi_candidates(m1, m2, p1, p2, T_1_2_init, config: MergeConfig, icp_kwarg
     if rc.hypotheses in ("yaw_grid", "both"):
         center = T0[:3, :3] @ np.asarray(p2, np.float64).mean(0) + T0[:3, 3]
         hyps = reg.default_hypotheses(T0, center, rc.yaw_step_rad, rc.roll_pitch_offset_rad)
-        parts.append(_timed(timings, "icp", reg.icp_multi, p2, p1, T0, hyps, **icp_kwargs))
-    num_grid = parts[0].scores.shape[0] if parts else 0
+        parts.append((_timed(timings, "icp", reg.icp_multi, p2, p1, T0, hyps, **icp_kwargs), "yaw_grid"))
     if rc.hypotheses in ("correlation", "both"):
         k = rc.correlation_hypotheses
         found = _timed(timings, "correlation", reg.correlation_search, m1, m2, T0, num_hypotheses=8 * k)
@@ -503,16 +502,15 @@ def _multi_candidates(m1, m2, p1, p2, T_1_2_init, config: MergeConfig, icp_kwarg
         loss = np.asarray(_timed(timings, "correlation", reg.dense.level_losses, problem, found.hypotheses,
                                  level=level))
         order = np.argsort(np.where(np.isfinite(loss), loss, np.inf), kind="stable")
-        parts.append(_local_candidates(p1, p2, found.hypotheses[order[:k]], config, m1.resolution, icp_kwargs,
-                                       timings))
+        parts.append((_local_candidates(p1, p2, found.hypotheses[order[:k]], config, m1.resolution, icp_kwargs,
+                                        timings), "correlation+icp"))
         if rc.correlation_dense > 0:
-            parts.append(_dense_candidates(problem, found.hypotheses[order[:rc.correlation_dense]], timings))
-    result = parts[0]
-    for part in parts[1:]:
+            parts.append((_dense_candidates(problem, found.hypotheses[order[:rc.correlation_dense]], timings),
+                          "correlation+dense"))
+    result = parts[0][0]
+    for part, _ in parts[1:]:
         result = _concat_candidates(result, part)
-    origin = np.concatenate([np.full(np.asarray(part.scores).shape[0], name) for part, name in
-                             zip(parts, [n for n, on in (("yaw_grid", num_grid > 0), ("correlation+icp", True),
-                                                         ("correlation+dense", True)) if on])])
+    origin = np.concatenate([np.full(np.asarray(part.scores).shape[0], name) for part, name in parts])
     return result, origin, problem
 
 

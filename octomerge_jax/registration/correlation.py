@@ -57,8 +57,8 @@ _D = morton.TREE_DEPTH
 @dataclasses.dataclass(frozen=True)
 class CorrelationResult:
     """``hypotheses (k, 4, 4)`` float64 ``T_1_2`` (map 2 -> map 1), best first; ``scores (k,)``
-    their correlation divided by the number of map 2's occupied cells (1 = every cell on a
-    surface of map 1); ``yaws (k,)`` [rad] the yaw turned onto the guess's rotation; ``cell``
+    their score ``N / (D + 0.1 W)`` (module docstring; below 1, higher is better);
+    ``yaws (k,)`` [rad] the yaw turned onto the guess's rotation; ``cell``
     [m] the grid's cell edge."""
 
     hypotheses: np.ndarray
@@ -196,17 +196,17 @@ def correlation_search(target, source, T_1_2_init, *, cell: float | None = None,
     rounded to ``res * 2^k``), ``yaw_step_rad`` (default: one cell of arc at map 2's RMS
     radius, 1-6 degrees), ``per_yaw`` local maxima kept per yaw, ``free_weight`` map 2's free
     cells' total weight relative to its occupied cells' (>= 0; at most ``max_free_points``
-    of them, drawn with ``seed``). Returns the ``num_hypotheses`` best poses, no two within
-    two yaw steps and two cells of each other.
+    of them, drawn with ``seed``). Returns the ``num_hypotheses`` best poses, each at least
+    ``separation`` [m] (default 4 cells) from the better ones in ``yaw difference x map 2's RMS
+    radius + translation difference``.
     """
     T0 = rigid.check_rigid(T_1_2_init, "T_1_2_init").astype(np.float64)
     if int(num_hypotheses) < 1 or int(per_yaw) < 1:
         raise ValueError(f"num_hypotheses and per_yaw must be >= 1, got {num_hypotheses!r}, {per_yaw!r}")
     if not (np.isfinite(free_weight) and free_weight >= 0):
         raise ValueError(f"free_weight must be a finite number >= 0, got {free_weight!r}")
-    for name, m in (("target", target), ("source", source)):
-        if not isinstance(m, OccupancyMap):
-            _points(m, name)
+    target, source = (m if isinstance(m, OccupancyMap) else _points(m, name)
+                      for name, m in (("target", target), ("source", source)))
     maps = [m for m in (target, source) if isinstance(m, OccupancyMap)]
     if len(maps) == 2 and not math.isclose(maps[0].resolution, maps[1].resolution, rel_tol=1e-9):
         raise ValueError(f"resolutions differ: target {maps[0].resolution:g} m, source {maps[1].resolution:g} m")
@@ -222,7 +222,7 @@ def correlation_search(target, source, T_1_2_init, *, cell: float | None = None,
         if isinstance(target, OccupancyMap):
             cells1, occ1 = _map_cells(target, k)
         else:
-            cells1, occ1 = _point_cells(_points(target, "target"), cell)
+            cells1, occ1 = _point_cells(target, cell)
         src, signed, weights = _source_samples(source, cell, float(free_weight), int(max_free_points), rng)
         if not occ1.any() or not (signed > 0).any():
             raise ValueError("correlation_search: " + ("target" if not occ1.any() else "source")
@@ -308,9 +308,8 @@ def _source_samples(source, cell: float, free_weight: float, max_free: int, rng)
             free_c = free_c[rng.choice(free_c.shape[0], max_free, replace=False)]
         if free_weight == 0:
             free_c = free_c[:0]
-    else:
-        p = _points(source, "source")
-        occ_c = np.unique(np.floor(p / half).astype(np.int64), axis=0)
+    else:  # points, validated by the caller
+        occ_c = np.unique(np.floor(source / half).astype(np.int64), axis=0)
         free_c = np.zeros((0, 3), np.int64)
         size = half
     n_o, n_f = occ_c.shape[0], free_c.shape[0]
