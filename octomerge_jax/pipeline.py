@@ -481,8 +481,8 @@ def _multi_candidates(m1, m2, p1, p2, T_1_2_init, config: MergeConfig, icp_kwarg
     search's cells) and the best ``correlation_hypotheses`` refined: on the simulated lab
     (0.05 m) the pose nearest the truth (0.2 m) was the search's 37th and the re-ranking's
     2nd (office: 1st and 1st). ICP on the lab's overlap from it stalls at 0.2 m, so the best
-    ``correlation_dense`` of them also get the dense alignment (``_dense_candidates``; timed
-    as ``dense_correlation``). Returns ``(IcpMultiResult, origin (k,) str: "yaw_grid",
+    ``correlation_dense`` of them also get the dense alignment from that level on
+    (``_dense_candidates``; timed as ``dense_correlation``). Returns ``(IcpMultiResult, origin (k,) str: "yaw_grid",
     "correlation+icp" or "correlation+dense" per candidate, the prepared alignment problem or
     None)``."""
     reg = _reg()
@@ -505,8 +505,8 @@ def _multi_candidates(m1, m2, p1, p2, T_1_2_init, config: MergeConfig, icp_kwarg
         parts.append((_local_candidates(p1, p2, found.hypotheses[order[:k]], config, m1.resolution, icp_kwargs,
                                         timings), "correlation+icp"))
         if rc.correlation_dense > 0:
-            parts.append((_dense_candidates(problem, found.hypotheses[order[:rc.correlation_dense]], timings),
-                          "correlation+dense"))
+            parts.append((_dense_candidates(problem, found.hypotheses[order[:rc.correlation_dense]], level,
+                                            timings), "correlation+dense"))
     result = parts[0][0]
     for part, _ in parts[1:]:
         result = _concat_candidates(result, part)
@@ -514,17 +514,21 @@ def _multi_candidates(m1, m2, p1, p2, T_1_2_init, config: MergeConfig, icp_kwarg
     return result, origin, problem
 
 
-def _dense_candidates(problem, hypotheses, timings: dict):
+def _dense_candidates(problem, hypotheses, start_level: int, timings: dict):
     """``registration.solve_alignment`` (the dense, map-to-map alignment) from each pose of
-    ``hypotheses (k, 4, 4)`` as an ``IcpMultiResult``: a result with status converged or
-    max-iterations is usable (ICP status 0), any other (poor agreement, too little overlap)
-    is not (status too few inliers); the point statistics are not computed (0 / NaN). On the
+    ``hypotheses (k, 4, 4)``, from the level ``start_level`` on (the one the poses were
+    re-ranked at: they are within about a search cell, and the coarser levels' biased minima
+    let the solver wander out of the basin), as an ``IcpMultiResult``: a result with status
+    converged or max-iterations is usable (ICP status 0), any other (poor agreement, too
+    little overlap) is not (status too few inliers); the point statistics are not computed
+    (0 / NaN). On the
     simulated lab (0.05 m) ICP on the overlap stalled 0.2 m from the truth where this reached
     0.027 m, and it reported the wrong poses that agree better than the truth as poor
     agreement."""
     reg = _reg()
     icp_mod, _ = _icp_modules()
-    a = _timed(timings, "dense_correlation", reg.solve_alignment, problem, np.asarray(hypotheses, np.float64))
+    a = _timed(timings, "dense_correlation", reg.solve_alignment, problem, np.asarray(hypotheses, np.float64),
+               start_level=int(start_level))
     status = np.asarray(a.status)
     ok = np.isin(status, (0, 1))
     k = status.shape[0]

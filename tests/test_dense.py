@@ -8,6 +8,7 @@ simulator (``octomerge_jax.sim``) ray casts far too slowly for a < 60 s test bud
 
 from __future__ import annotations
 
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -311,3 +312,29 @@ def test_merge_multi_recovers_a_1_7_rad_yaw_error():
     assert float(metrics.rotation_angle_error(rep.T_1_2, T)) < 0.05
     # 16 hypotheses (12 yaws, 4 roll/pitch), fewer runs after the coarse stages merge basins
     assert 2 <= rep.icp["num_basins"] < rep.icp["num_hypotheses"] == 16, rep.icp
+
+
+def test_start_level_skips_the_coarse_levels(pair, problem):
+    """``start_level=j`` solves exactly the levels ``j..`` (the coarser ones leave the pose as
+    it is): the same pose as a problem holding only those levels, no iterations and a NaN
+    history on the skipped ones; out-of-range values name the argument."""
+    j = problem.num_levels - 1
+    T0 = np.stack([perturbed(0.05, -0.04, 0.0, 0, 0, 0.01), perturbed(-0.03, 0.05, 0.02, 0.01, 0, -0.02)])
+    r = dense.solve_alignment(problem, T0, maxiter=MAXITER, start_level=j)
+    fine = lambda a: a[j:]  # noqa: E731
+    only_fine = dataclasses.replace(
+        problem, map1=jax.tree_util.tree_map(fine, problem.map1), scale=fine(problem.scale),
+        points2=fine(problem.points2), signed2=fine(problem.signed2), weight2=fine(problem.weight2),
+        occupied2=fine(problem.occupied2), coverage_norm=fine(problem.coverage_norm),
+        levels=problem.levels[j:])
+    ref = dense.solve_alignment(only_fine, T0, maxiter=MAXITER)
+    np.testing.assert_allclose(np.asarray(r.T_1_2), np.asarray(ref.T_1_2), atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(r.iterations[:, :j]), 0)
+    assert np.all(np.isnan(np.asarray(r.loss_history[:, :j])))
+    np.testing.assert_array_equal(np.asarray(r.iterations[:, j]), np.asarray(ref.iterations[:, 0]))
+    assert np.all(np.asarray(r.iterations[:, j]) > 0)
+    full = dense.solve_alignment(problem, T0, maxiter=MAXITER)
+    assert not np.allclose(np.asarray(full.T_1_2), np.asarray(r.T_1_2), atol=1e-6)  # the coarse levels ran there
+    for bad in (-1, problem.num_levels, 1.0, True):
+        with pytest.raises(ValueError, match="start_level"):
+            dense.solve_alignment(problem, T0, start_level=bad)

@@ -398,7 +398,7 @@ def prepare_alignment(m1: OccupancyMap, m2: OccupancyMap, *, levels=None,
 
     maps = [b[0].with_capacity(mcap) for b in built]
     map1 = jax.tree_util.tree_map(lambda *a: jnp.stack([jnp.asarray(x) for x in a]), *maps)
-    fine_pts, fine_w = built[-1][1], built[-1][3]
+    fine_pts = built[-1][1]
     center = fine_pts.mean(axis=0) if fine_pts.size else np.zeros(3)
     radius = np.sqrt(np.mean(np.sum((fine_pts - center) ** 2, axis=1))) if fine_pts.size else 1.0
     radius = max(float(radius), 10.0 * m2.resolution)
@@ -565,10 +565,11 @@ def score_alignment(problem: AlignProblem, T_1_2s):
 
 
 def _solve(problem: AlignProblem, T_init, tol, xtol, max_step, min_overlap, min_agreement,
-           maxiter: int):
-    """Coarse-to-fine L-BFGS (one compiled level step, scanned over the levels)."""
+           start_level, maxiter: int):
+    """Coarse-to-fine L-BFGS (one compiled level step, scanned over the levels; the levels
+    before ``start_level`` pass the pose through)."""
 
-    def level_step(T, i):
+    def solve_level(T, i):
         lv = _at(problem, i)
         cell = problem.map1.resolution / problem.scale[i]  # this level's cell size [m]
         res = _solver.minimize(_objective, jnp.zeros(6, jnp.float32), lv, T, problem.center2,
@@ -579,6 +580,13 @@ def _solve(problem: AlignProblem, T_init, tol, xtol, max_step, min_overlap, min_
         z = res.x * jnp.minimum(1.0, max_step / jnp.maximum(n, 1e-12))
         T_new = pose_from_increment(T, z, problem.center2, problem.radius)
         return T_new, (res.history, res.num_iterations, res.converged & (n <= max_step), res.grad_norm)
+
+    def skip_level(T, i):
+        nan = jnp.full((maxiter + 1,), jnp.nan, jnp.float32)
+        return T, (nan, jnp.int32(0), jnp.bool_(True), jnp.float32(jnp.nan))
+
+    def level_step(T, i):
+        return jax.lax.cond(i < start_level, skip_level, solve_level, T, i)
 
     T0 = jnp.asarray(T_init, jnp.float32)
     T, (hist, iters, conv, gnorm) = jax.lax.scan(level_step, T0, jnp.arange(problem.num_levels))
@@ -594,37 +602,44 @@ def _solve(problem: AlignProblem, T_init, tol, xtol, max_step, min_overlap, min_
 
 
 @partial(jax.jit, static_argnames=("maxiter",))
-def _solve_jit(problem, T_init, tol, xtol, max_step, min_overlap, min_agreement, *, maxiter):
-    return _solve(problem, T_init, tol, xtol, max_step, min_overlap, min_agreement, maxiter)
+def _solve_jit(problem, T_init, tol, xtol, max_step, min_overlap, min_agreement, start_level, *, maxiter):
+    return _solve(problem, T_init, tol, xtol, max_step, min_overlap, min_agreement, start_level, maxiter)
 
 
 @partial(jax.jit, static_argnames=("maxiter",))
-def _solve_many_jit(problem, T_inits, tol, xtol, max_step, min_overlap, min_agreement, *, maxiter):
+def _solve_many_jit(problem, T_inits, tol, xtol, max_step, min_overlap, min_agreement, start_level, *,
+                    maxiter):
     return jax.vmap(lambda T: _solve(problem, T, tol, xtol, max_step, min_overlap, min_agreement,
-                                     maxiter))(T_inits)
+                                     start_level, maxiter))(T_inits)
 
 
 @partial(jax.jit, static_argnames=("maxiter",))
-def _solve_pairs_jit(problems, T_inits, tol, xtol, max_step, min_overlap, min_agreement, *, maxiter):
+def _solve_pairs_jit(problems, T_inits, tol, xtol, max_step, min_overlap, min_agreement, start_level, *,
+                     maxiter):
     return jax.vmap(lambda p, T: _solve(p, T, tol, xtol, max_step, min_overlap, min_agreement,
-                                        maxiter))(problems, T_inits)
+                                        start_level, maxiter))(problems, T_inits)
 
 
-def _options(problem, maxiter, tol, xtol, max_step, min_overlap, min_agreement):
+def _options(problem, maxiter, tol, xtol, max_step, min_overlap, min_agreement, start_level):
     if int(maxiter) < 1:
         raise ValueError(f"maxiter must be >= 1, got {maxiter}")
+    if isinstance(start_level, bool) or not isinstance(start_level, (int, np.integer)) or not (
+            0 <= start_level < problem.num_levels):
+        raise ValueError(f"start_level must be an int in 0..{problem.num_levels - 1} (an index into the "
+                         f"problem's levels {problem.levels}), got {start_level!r}")
     for name, v in dict(tol=tol, max_step=max_step, min_overlap=min_overlap,
                         min_agreement=min_agreement).items():
         if not (np.isfinite(v) and v >= 0):
             raise ValueError(f"{name} must be a non-negative number, got {v!r}")
     xtol = problem.map1.resolution / 100.0 if xtol is None else float(xtol)
     return (jnp.float32(tol), jnp.float32(xtol), jnp.float32(max_step), jnp.float32(min_overlap),
-            jnp.float32(min_agreement))
+            jnp.float32(min_agreement), jnp.int32(start_level))
 
 
 def solve_alignment(problem: AlignProblem, T_1_2_init, *, maxiter: int = 30, tol: float = 1e-4,
                     xtol: float | None = None, max_step: float = 3.0,
-                    min_overlap: float = 0.15, min_agreement: float = 0.85) -> AlignResult:
+                    min_overlap: float = 0.15, min_agreement: float = 0.85,
+                    start_level: int = 0) -> AlignResult:
     """Jitted coarse-to-fine L-BFGS on a prepared problem from ``T_1_2_init`` ``(4, 4)`` or
     ``(k, 4, 4)`` (then ``vmap``-ed over the ``k`` guesses; every result field gains a leading
     ``k``). ``maxiter`` (per level) is static; ``tol`` (gradient norm of the loss w.r.t. the
@@ -632,7 +647,13 @@ def solve_alignment(problem: AlignProblem, T_1_2_init, *, maxiter: int = 30, tol
     scaled by ``2^k`` at coarse levels), ``max_step`` (trust region: the norm of one level's
     increment ``z``, metres; a level that wants more is cut back and not counted as
     converged), ``min_overlap`` and ``min_agreement`` (status thresholds, module docstring)
-    are traced, so changing them does not recompile. ``min_agreement`` (default 0.85) is a
+    and ``start_level`` are traced, so changing them does not recompile.
+    ``start_level`` (index into ``problem.levels``, default 0): solve from this level on, the
+    coarser ones skipped (their ``iterations`` 0, history NaN). For starts already inside a
+    finer level's basin: a coarse level's minimum is biased (the maps coarsened by max) and
+    flat along some directions, and the solver can wander along it out of the finer basin
+    (simulated lab at 0.05 m, a start 0.16 m / 0.002 rad off: 0.59 m off with levels from
+    0.8 m, 0.028 m from 0.4 m; ``correlation_search``'s poses are within about a cell). ``min_agreement`` (default 0.85) is a
     heuristic like any fitness threshold: on poses solved from 16 starts (up to 3 rad, 1 m
     off) on the test rooms and on simulated robot maps (lab / office at 0.1 and 0.05 m, loaded
     from .bt files) right poses scored 0.93-1.00 and wrong ones 0.45-0.94, the highest being
@@ -645,7 +666,7 @@ def solve_alignment(problem: AlignProblem, T_1_2_init, *, maxiter: int = 30, tol
     agrees perfectly (measured: 5-10 % of map 2's surfaces in map 1's known space, agreement
     0.96-0.995, vs 39-41 % for the true pose on our test room); below 15 % the result is
     reported as status 3, not trusted."""
-    args = _options(problem, maxiter, tol, xtol, max_step, min_overlap, min_agreement)
+    args = _options(problem, maxiter, tol, xtol, max_step, min_overlap, min_agreement, start_level)
     if isinstance(T_1_2_init, jax.core.Tracer):
         return _solve_jit(problem, T_1_2_init, *args, maxiter=int(maxiter))
     T0 = np.asarray(T_1_2_init, np.float64)
@@ -659,10 +680,11 @@ def solve_alignment(problem: AlignProblem, T_1_2_init, *, maxiter: int = 30, tol
 
 def solve_alignment_batch(problems: AlignProblem, T_1_2_inits, *, maxiter: int = 30,
                           tol: float = 1e-4, xtol: float | None = None, max_step: float = 3.0,
-                          min_overlap: float = 0.15, min_agreement: float = 0.85) -> AlignResult:
+                          min_overlap: float = 0.15, min_agreement: float = 0.85,
+                          start_level: int = 0) -> AlignResult:
     """``solve_alignment`` ``vmap``-ed over stacked pairs (``stack_problems``) with one
     initial guess each, ``T_1_2_inits (n, 4, 4)``."""
-    args = _options(problems, maxiter, tol, xtol, max_step, min_overlap, min_agreement)
+    args = _options(problems, maxiter, tol, xtol, max_step, min_overlap, min_agreement, start_level)
     T0 = np.asarray(T_1_2_inits, np.float64)
     if T0.ndim != 3 or T0.shape[0] != problems.radius.shape[0]:
         raise ValueError(f"T_1_2_inits: expected shape ({problems.radius.shape[0]}, 4, 4), got {T0.shape}")
