@@ -168,7 +168,7 @@ def _rss_mb() -> float:
 def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
     import jax
 
-    from octomerge_jax import resample, tree
+    from octomerge_jax import resample
 
     m = tiled_map(tiles)
     jax.block_until_ready(m.code)

@@ -246,7 +246,7 @@ def test_report_counts_cases():
     # M1: one depth-13 leaf A, one depth-15 leaf B; M2: a voxel inside A (case 3), a depth-14
     # leaf containing B (case 4), a leaf equal to nothing (case 1) and a leaf equal to ... none
     base = int(morton.keys_to_codes(np.array([32768] * 3, np.uint16)))
-    s13, s14, s15 = int(span(13)), int(span(14)), int(span(15))
+    s13, s15 = int(span(13)), int(span(15))
     a, b = base, base + s13 + s15  # b inside the depth-14 cell base + s13
     m1 = omap.from_leaves(np.array([a, b], np.uint64), [13, 15], [0.4, -0.4], RES, capacity=CAP_IN)
     c2 = np.array([a + 5, base + s13, base + 2 * s13, base + 3 * s13], np.uint64)

@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from octomerge_jax import tree
 from octomerge_jax.sim import (DepthCamera, SpinningLidar, cast_rays, cast_rays_host,
                                lab_room, make_two_robot_maps, mesh_scene, office_floor,
-                               poses_along_path, pose_from_xyz_rpy, resample_path, scan)
+                               poses_along_path, resample_path, scan)
 from octomerge_jax.sim.trajectory import apply_odometry_drift
 
 
