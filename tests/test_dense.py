@@ -300,6 +300,28 @@ def test_map_agreement_ranks_the_turned_room_below_the_truth(pair, problem):
         dense.score_alignment(problem, np.eye(4))
 
 
+@pytest.mark.parametrize("agree, overlap, best", [
+    ((0.78, 0.89, 0.95), (0.4, 0.3, 0.1), 1),   # the lower losses fail agreement / overlap
+    ((0.78, 0.80, 0.95), (0.4, 0.3, 0.1), 2),   # none passes: the loss decides among all
+    ((0.90, 0.89, 0.80), (0.4, 0.3, 0.5), 0)])  # two pass: the loss decides among them
+def test_map_agreement_prefers_candidates_that_pass_the_dense_status_checks(monkeypatch, pair, problem,
+                                                                            agree, overlap, best):
+    """A pose can agree better by the loss than the truth and still put map 2's surfaces into
+    map 1's free space (simulated lab: turned by pi -0.32, agreement 0.78; the truth -0.27,
+    0.89): candidates passing ``solve_alignment``'s status checks (overlap >= 0.15,
+    agreement >= 0.85) are preferred, the others compete only when none passes."""
+    from octomerge_jax import pipeline, registration
+
+    m1, m2, _ = pair
+    loss = np.asarray([-0.32, -0.27, -0.40])
+    monkeypatch.setattr(registration, "score_alignment",
+                        lambda problem, T: (loss[:len(T)], np.asarray(overlap), np.asarray(agree)))
+    Ts = np.stack([T_TRUE] * 3)
+    res, map_loss = pipeline.rank_by_map_agreement(m1, m2, _multi_result(Ts, [0, 0, 1]), problem=problem)
+    assert int(res.best_index) == best
+    np.testing.assert_allclose(map_loss, loss)
+
+
 @pytest.mark.slow
 def test_merge_multi_recovers_a_1_7_rad_yaw_error():
     """Table 7.2 row 7 (1.7 rad), failed by the thesis: ``icp_multi`` alone picks the room turned

@@ -152,17 +152,26 @@ def test_merge_multi_with_correlation_hypotheses_recovers_the_truth():
     np.testing.assert_allclose(b.report.T_1_2, rep.T_1_2, atol=1e-3)
 
 
-@pytest.mark.parametrize("loss_near, loss_far, chosen", [(-0.29, -0.304, "far"), (-0.271, -0.276, "near"),
-                                                         (-0.30, -0.28, "near")])
-def test_both_sources_take_the_far_pick_only_by_the_margin(monkeypatch, loss_near, loss_far, chosen):
-    """hypotheses="both": each group's pick gets its local step; the correlation (far) pick
-    wins only when its map loss is lower by more than far_margin (3 %) of the near one's
-    (the hall: -0.304 vs -0.291, far; the simulated lab: a wrong pose -0.276 vs -0.271)."""
+@pytest.mark.parametrize("loss_near, loss_far, plausible, chosen", [
+    (-0.29, -0.304, (True, True), "far"), (-0.271, -0.276, (True, True), "near"),
+    (-0.30, -0.28, (True, True), "near"), (-0.30, -0.28, (False, False), "near"),
+    (-0.19, -0.32, (True, False), "near"), (-0.32, -0.19, (False, True), "far")])
+def test_both_sources_take_the_far_pick_only_by_the_margin(monkeypatch, loss_near, loss_far, plausible, chosen):
+    """hypotheses="both": each group's pick gets its local step; a pick that passes the dense
+    status checks (overlap, agreement) beats one that does not, whatever the losses (the
+    simulated lab with a tilted guess: the pose turned by pi -0.32 / agreement 0.78, the yaw
+    grid's -0.19 / 0.89 after its local step); else the correlation (far) pick wins only
+    when its map loss is lower by more than far_margin (3 %) of the near one's (the hall:
+    -0.304 vs -0.291, far; the simulated lab: a wrong pose -0.276 vs -0.271)."""
     pl = importlib.import_module("octomerge_jax.pipeline")
+
+    class Pose:
+        def __init__(self, i):
+            self.T_target_source = i
 
     class Picked:
         def __init__(self, i):
-            self.best, self.best_index = i, np.int32(i)
+            self.best, self.best_index = Pose(i), np.int32(i)
 
     losses = np.asarray([loss_near, 0.0, loss_far, 0.0])
     monkeypatch.setattr(pl._reg(), "prepare_alignment", lambda m1, m2: None)
@@ -172,8 +181,9 @@ def test_both_sources_take_the_far_pick_only_by_the_margin(monkeypatch, loss_nea
         return Picked(i), losses
 
     monkeypatch.setattr(pl, "rank_by_map_agreement", rank)
+    monkeypatch.setattr(pl, "_loss_and_plausible", lambda problem, i: (losses[i], plausible[i // 2]))
     monkeypatch.setattr(pl, "_refine_multi_locally",
-                        lambda p1, p2, pick, *a: (f"local from {pick}", {"used": False, "pick": pick}))
+                        lambda p1, p2, pick, *a: (f"local from {pick.T_target_source}", {"used": False}))
     near = np.asarray([True, True, False, False])
     m = types.SimpleNamespace(resolution=RES)
     r, _, local, info = pl._rank_and_refine(m, m, None, None, None, near, MergeConfig(), {}, {})
