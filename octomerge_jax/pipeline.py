@@ -482,9 +482,9 @@ def _multi_candidates(m1, m2, p1, p2, T_1_2_init, config: MergeConfig, icp_kwarg
     (0.05 m) the pose nearest the truth (0.2 m) was the search's 37th and the re-ranking's
     2nd (office: 1st and 1st). ICP on the lab's overlap from it stalls at 0.2 m, so the best
     ``correlation_dense`` of them also get the dense alignment from that level on
-    (``_dense_candidates``; timed as ``dense_correlation``). Returns ``(IcpMultiResult, origin (k,) str: "yaw_grid",
-    "correlation+icp" or "correlation+dense" per candidate, the prepared alignment problem or
-    None)``."""
+    (``_dense_candidates``; timed as ``dense_correlation``). Returns ``(IcpMultiResult, origin
+    (k,) str: "yaw_grid", "correlation+icp" or "correlation+dense" per candidate, the prepared
+    alignment problem or None)``."""
     reg = _reg()
     rc = config.registration
     T0 = np.asarray(T_1_2_init, np.float64)
@@ -521,10 +521,9 @@ def _dense_candidates(problem, hypotheses, start_level: int, timings: dict):
     let the solver wander out of the basin), as an ``IcpMultiResult``: a result with status
     converged or max-iterations is usable (ICP status 0), any other (poor agreement, too
     little overlap) is not (status too few inliers); the point statistics are not computed
-    (0 / NaN). On the
-    simulated lab (0.05 m) ICP on the overlap stalled 0.2 m from the truth where this reached
-    0.027 m, and it reported the wrong poses that agree better than the truth as poor
-    agreement."""
+    (0 / NaN). On the simulated lab (0.05 m) ICP on the overlap stalled 0.2 m from the truth
+    where this reached 0.027 m, and it reported the wrong poses that agree better than the
+    truth as poor agreement."""
     reg = _reg()
     icp_mod, _ = _icp_modules()
     a = _timed(timings, "dense_correlation", reg.solve_alignment, problem, np.asarray(hypotheses, np.float64),
@@ -597,9 +596,9 @@ def _rank_and_refine(m1, m2, p1, p2, result, near_guess, config: MergeConfig, ic
     grid, near the guess; the others come from ``correlation_search``, anywhere), each group's
     pick gets its local step; when only one of the two passes the dense status checks
     (``rank_by_map_agreement``) it is taken, else the far one only when its map loss is lower
-    than the near one's by more than ``registration.far_margin`` (relative): maps can agree about as well
-    at a wrong pose as at the truth (simulated lab at 0.05 m: a pose 6.6 m off -0.276, the
-    truth -0.271), and then the guess decides. Returns ``(ranked result, map losses (k,),
+    than the near one's by more than ``registration.far_margin`` (relative): maps can agree
+    about as well at a wrong pose as at the truth (simulated lab at 0.05 m: a pose 6.6 m off
+    -0.276, the truth -0.271), and then the guess decides. Returns ``(ranked result, map losses (k,),
     local IcpResult or None, local info dict)``. ``problem``: a prepared alignment to reuse;
     ``origin`` ``(k,)`` str: where each candidate came from (the pick's goes to the info dict
     as ``pick_origin``)."""
@@ -699,7 +698,8 @@ def rank_by_map_agreement(m1: OccupancyMap, m2: OccupancyMap, result, *, problem
     rad yaw errors, the map loss picked the truth in all four (-0.332 vs -0.29).
     Candidates that pass the dense alignment's status checks (``solve_alignment``: at least
     ``min_overlap`` (default 0.15) of map 2's occupied points in map 1's known space,
-    ``min_agreement`` (default 0.85) of those next to map 1's surfaces) are preferred; the others compete only when none passes.
+    ``min_agreement`` (default 0.85) of those next to map 1's surfaces) are preferred; the
+    others compete only when none passes.
     The loss alone can favour a wrong pose: on the simulated lab (0.05 m) poses turned by pi
     scored -0.29 to -0.32 against the truth's -0.27, with agreement 0.71-0.84 against 0.89.
     ``problem``: a ``prepare_alignment(m1, m2)`` to reuse (default: prepared here);
