@@ -618,9 +618,9 @@ def _rank_and_refine(m1, m2, p1, p2, result, near_guess, config: MergeConfig, ic
                              among=among)
         local, info = _refine_multi_locally(p1, p2, r.best, problem, config, m1.resolution, icp_kwargs,
                                             timings)
-        picks[name] = (r, local, info) + _loss_and_plausible(problem, (local if info["used"] else r.best)
-                                                             .T_target_source)
-    (l_near, ok_near), (l_far, ok_far) = picks["near"][3:], picks["far"][3:]
+        picks[name] = (r, local, info, (local if info["used"] else r.best).T_target_source)
+    # both final poses scored in one call (two poses, as in the local step: no new compile)
+    (l_near, l_far), (ok_near, ok_far) = _scores_and_plausible(problem, [picks["near"][3], picks["far"][3]])
     if ok_near != ok_far:  # one passes the dense status checks: it, whatever the losses
         chosen = "near" if ok_near else "far"
     else:
@@ -680,16 +680,17 @@ def _with_local_step(info: dict, pick, local, local_info: dict):
 _MIN_OVERLAP, _MIN_AGREEMENT = 0.15, 0.85
 
 
-def _loss_and_plausible(problem, T_1_2) -> tuple:
-    """``(finest-level map loss, passes the dense status checks)`` of one pose ``(4, 4)``."""
-    loss, overlap, agree = (float(np.asarray(a)[0]) for a in
-                            _reg().score_alignment(problem, np.asarray(T_1_2, np.float64)[None]))
-    return loss, bool(overlap >= _MIN_OVERLAP and agree >= _MIN_AGREEMENT)
+def _scores_and_plausible(problem, T_1_2s, min_overlap: float = _MIN_OVERLAP,
+                          min_agreement: float = _MIN_AGREEMENT) -> tuple:
+    """``(finest-level map losses (k,), pass the dense status checks (k,) bool)`` of the poses
+    ``T_1_2s`` (a ``(k, 4, 4)`` array or a sequence of ``(4, 4)``), float64."""
+    loss, overlap, agree = (np.asarray(a, np.float64) for a in
+                            _reg().score_alignment(problem, np.asarray(T_1_2s, np.float64)))
+    return loss, (overlap >= min_overlap) & (agree >= min_agreement)
 
 
 def rank_by_map_agreement(m1: OccupancyMap, m2: OccupancyMap, result, *, problem=None, among=None,
-                          min_agreement: float | None = None,
-                          min_overlap: float | None = None):
+                          min_agreement: float = _MIN_AGREEMENT, min_overlap: float = _MIN_OVERLAP):
     """``icp_multi``'s result (source = map 2's points, target = map 1's) with its best candidate
     re-chosen by the occupancy agreement of the two *maps* (``registration.score_alignment``:
     lowest finest-level dense loss among candidates whose ICP status is converged or
@@ -709,16 +710,14 @@ def rank_by_map_agreement(m1: OccupancyMap, m2: OccupancyMap, result, *, problem
     cands = result.candidates
     T = np.asarray(cands.T_target_source, np.float64)
     problem = reg.prepare_alignment(m1, m2) if problem is None else problem
-    loss, overlap, agree = (np.asarray(a, np.float64) for a in reg.score_alignment(problem, T))
+    loss, plausible = _scores_and_plausible(problem, T, min_overlap, min_agreement)
     status = np.asarray(cands.status)
     usable = np.isin(status, (0, 1)) & np.isfinite(loss)  # IcpResult: 0 converged, 1 max iterations
     if among is not None:
         usable &= np.asarray(among, bool)
     if not usable.any():
         return result, loss
-    min_overlap = _MIN_OVERLAP if min_overlap is None else float(min_overlap)
-    min_agreement = _MIN_AGREEMENT if min_agreement is None else float(min_agreement)
-    plausible = usable & (overlap >= min_overlap) & (agree >= min_agreement)
+    plausible &= usable
     if plausible.any():
         usable = plausible
     i = int(np.argmin(np.where(usable, loss, np.inf)))

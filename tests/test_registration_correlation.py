@@ -181,7 +181,8 @@ def test_both_sources_take_the_far_pick_only_by_the_margin(monkeypatch, loss_nea
         return Picked(i), losses
 
     monkeypatch.setattr(pl, "rank_by_map_agreement", rank)
-    monkeypatch.setattr(pl, "_loss_and_plausible", lambda problem, i: (losses[i], plausible[i // 2]))
+    monkeypatch.setattr(pl, "_scores_and_plausible", lambda problem, ids: (
+        losses[list(ids)], np.asarray([plausible[i // 2] for i in ids])))
     monkeypatch.setattr(pl, "_refine_multi_locally",
                         lambda p1, p2, pick, *a: (f"local from {pick.T_target_source}", {"used": False}))
     near = np.asarray([True, True, False, False])
