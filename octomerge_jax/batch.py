@@ -47,6 +47,7 @@ from .pipeline import (
     _check_T,
     _displacements,
     _epsilons,
+    _fill_point_stats,
     _icp_dict,
     _icp_kwargs,
     _icp_modules,
@@ -267,6 +268,7 @@ def _finish_icp(i, state, results, r, cfg, local=None):
     best = r.best if refine == "multi" else r
     if local is not None:
         best = _with_local_step(info, best, *local)
+        _fill_point_stats(info, s["q1"], s["q2"], best.T_target_source, cfg, s["m1"].resolution, s["timings"])
     T = np.asarray(best.T_target_source, np.float64)
     if info["status"] == "too_few_inliers" or not np.all(np.isfinite(T)):
         results[i] = BatchResult("error", message=f"ICP failed: {info['num_inliers']} inliers", kind="icp_failed")

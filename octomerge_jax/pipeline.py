@@ -49,6 +49,7 @@ __all__ = [
 _NUM_LIST = re.compile(r"\[\s*((?:-?[0-9.eE+-]+|null)(?:,\s*(?:-?[0-9.eE+-]+|null))*)\s*\]")
 
 ICP_STATUS_NAMES = {0: "converged", 1: "max_iterations", 2: "too_few_inliers"}
+DENSE_STATUS_NAMES = {0: "converged", 1: "max_iterations", 2: "poor_agreement", 3: "low_overlap", 4: "not_finite"}
 
 
 class MergeError(ValueError):
@@ -69,15 +70,20 @@ class MergeReport:
     - ``T_1_2_init``, ``T_1_2``: ``(4, 4)`` float64, the initial guess and the transform used
       (after refinement), mapping map 2's frame into map 1's [m].
     - ``T_1_2_true``: ground truth if given, else ``None``.
-    - ``refine``: ``"icp"``, ``"multi"`` or ``"none"``.
+    - ``refine``: ``"icp"``, ``"multi"``, ``"dense"``, ``"icp+dense"`` or ``"none"``.
     - ``icp``: the ICP result as a dict (``converged``, ``status``, ``num_iterations``,
       ``num_inliers``, ``rmse`` [m], ``fitness``, ``correspondence_distance`` [m], ...; for
+      ``"dense"`` the same keys for the dense alignment (status names ``DENSE_STATUS_NAMES``,
+      the point statistics measured at its transform by ``point_stats``) and its own figures
+      under ``dense``; for
       ``"multi"`` also ``best_index`` (the candidate chosen by map agreement,
       ``rank_by_map_agreement``), ``point_best_index`` (``icp_multi``'s own choice),
       ``map_loss`` per candidate, ``num_hypotheses``, ``num_basins``: the ICP runs left after
       merging hypotheses that reached one basin, and ``local``: the local ICP on the commonly
       mapped subsets from the chosen candidate, ``used`` when it lowered the map loss, whose
-      convergence, iterations, inliers and rmse the top-level fields then report),
+      convergence, iterations, inliers and rmse the top-level fields then report; a pick
+      from the dense alignment has its point statistics measured at its transform,
+      ``stats_evaluated``),
       ``None`` for ``refine="none"``.
     - ``epsilon_r_init``, ``epsilon_t_init``, ``epsilon_r``, ``epsilon_t``: thesis eqs. 7.2 /
       7.3 before / after refinement when ``T_1_2_true`` is given (else ``None``).
@@ -146,7 +152,8 @@ class MergeReport:
         lines = []
         if self.icp is not None:
             i = self.icp
-            lines.append(f"ICP ({self.refine}): {i['status']} after {i['num_iterations']} iterations, "
+            what = "dense alignment" if self.refine == "dense" else f"ICP ({self.refine})"
+            lines.append(f"{what}: {i['status']} after {i['num_iterations']} iterations, "
                          f"{i['num_inliers']} inliers, rmse {i['rmse']:.4f} m, fitness {i['fitness']:.2f}")
         if self.epsilon_r_init is not None:
             lines.append(f"epsilon_r {self.epsilon_r_init:.4f} -> {self.epsilon_r:.4f}   "
@@ -394,7 +401,11 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
     if rc.refine == "none":
         return T_1_2_init, None, None, counts, p1, p2
     if rc.refine == "dense":  # gradient-based alignment of the occupancy fields only
-        T_1_2, info, result = _refine_dense(m1, m2, T_1_2_init, timings, warnings)
+        T_1_2, dense_info, result = _refine_dense(m1, m2, T_1_2_init, timings, warnings)
+        status = dense_info["status"]
+        info = {"converged": dense_info["converged"], "status": DENSE_STATUS_NAMES.get(status, str(status)),
+                "num_iterations": dense_info["num_iterations"],
+                **_timed(timings, "evaluate", point_stats, p1, p2, T_1_2, config, res), "dense": dense_info}
         return T_1_2, info, result, counts, p1, p2
     for name, p in (("map 1", p1), ("map 2", p2)):
         if p.shape[0] < rc.min_overlap_points:
@@ -426,6 +437,7 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
     if rc.refine == "multi":
         info.update(point_best_index=point_best, map_loss=[round(float(v), 5) for v in map_loss])
         best = _with_local_step(info, best, local, local_info)
+        _fill_point_stats(info, p1, p2, best.T_target_source, config, res, timings)
     T_icp = np.asarray(best.T_target_source, np.float64)
     if info["status"] == "too_few_inliers" or not np.all(np.isfinite(T_icp)):
         raise MergeError(
@@ -674,6 +686,38 @@ def _with_local_step(info: dict, pick, local, local_info: dict):
                 rmse=float(local.rmse), fitness=float(local.fitness),
                 correspondence_distance=float(local.correspondence_distance))
     return local
+
+
+def point_stats(points_1, points_2, T_1_2, config: MergeConfig, resolution: float) -> dict:
+    """``num_inliers``, ``rmse`` [m], ``fitness`` and ``correspondence_distance`` [m] of map 2's
+    occupied points placed by ``T_1_2`` against map 1's (``registration.evaluate_registration``
+    on the commonly mapped subsets under ``T_1_2``, ``registration.overlap``, within ICP's floor
+    distance, 2 res by default): the figures ICP reports at its result, for a transform that
+    did not come from ICP (the dense alignment)."""
+    reg = _reg()
+    rc = config.registration
+    d = float(reg.stage_distances(resolution, rc.max_correspondence_distance, rc.min_correspondence_distance,
+                                  rc.shrink_factor)[-1])
+    T = np.asarray(T_1_2, np.float64)
+    if not np.all(np.isfinite(T)):
+        return dict(num_inliers=0, rmse=float("nan"), fitness=0.0, correspondence_distance=d)
+    q1, q2 = _select_overlap(points_1, points_2, T, rc.overlap, overlap_margin(config, resolution))
+    if min(q1.shape[0], q2.shape[0]) == 0:
+        return dict(num_inliers=0, rmse=float("nan"), fitness=0.0, correspondence_distance=d)
+    st = reg.evaluate_registration(q2, q1, T, d, cell_capacity=rc.cell_capacity)
+    return dict(num_inliers=int(st.num_inliers), rmse=float(st.rmse), fitness=float(st.fitness),
+                correspondence_distance=d)
+
+
+def _fill_point_stats(info: dict, points_1, points_2, T_1_2, config: MergeConfig, resolution: float,
+                      timings: dict):
+    """``refine="multi"``: a pick born in the dense alignment (``_dense_candidates``) and kept
+    (its local ICP step not used) has no ICP statistics; measure them at its transform
+    (``point_stats``) so that the report's inliers / rmse / fitness always describe the result."""
+    if np.isfinite(info["rmse"]):
+        return
+    info.update(_timed(timings, "evaluate", point_stats, points_1, points_2, T_1_2, config, resolution))
+    info["stats_evaluated"] = True
 
 
 # the dense alignment's status thresholds (``solve_alignment``'s defaults), for ranking candidates

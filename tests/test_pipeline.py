@@ -294,6 +294,27 @@ def test_report_is_frozen_and_summary(merged_icp):
     assert "epsilon_r" in s and "ICP (icp): converged" in s
 
 
+def test_refine_dense_reports_like_icp():
+    """refine="dense": the report has ICP's fields (the summary and the batch table read them;
+    the summary raised KeyError before), the point statistics measured at its transform
+    (``evaluate_registration`` on the overlap within 2 res), the solver's own under ``dense``."""
+    from octomerge_jax import registration as reg
+
+    m1, m2, T = small_pair()
+    _, rep = merge(m1, m2, perturbed(), refine="dense", T_1_2_true=T)
+    i = rep.icp
+    assert i["status"] in ("converged", "max_iterations") and i["dense"]["status"] in (0, 1), i
+    assert rep.displacement < min(RES, rep.displacement_init), rep.displacement  # within a voxel
+    assert i["correspondence_distance"] == pytest.approx(2 * RES)
+    assert i["num_inliers"] > 0.8 * rep.counts["occupied_2"] / 2 and 0 < i["rmse"] < RES, i
+    q1, q2 = rep.points_1, rep.points_2
+    st = reg.evaluate_registration(q2, q1, rep.T_1_2, 2 * RES)
+    assert int(st.num_inliers) >= i["num_inliers"] * 0.9  # whole clouds: at least the overlap's
+    s = rep.summary()
+    assert s.startswith("dense alignment: ") and "inliers, rmse" in s
+    assert json.loads(rep.to_json())["icp"]["dense"]["num_iterations"] == i["num_iterations"]
+
+
 def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
     """refine="icp+dense": a dense failure from ICP's result (ICP in a wrong basin) retries dense
     from the initial guess; if that fails too, ICP's transform is kept and both failures are

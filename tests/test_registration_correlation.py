@@ -147,9 +147,14 @@ def test_merge_multi_with_correlation_hypotheses_recovers_the_truth():
     rc = cfg.registration
     assert len(rep.icp["map_loss"]) == rc.correlation_hypotheses + rc.correlation_dense
     assert rep.icp["local"]["pick_origin"] in ("correlation+icp", "correlation+dense")
+    # the point statistics describe the result whichever step made it (a dense-born pick has
+    # none of its own: measured at its transform)
+    assert rep.icp["num_inliers"] > 0 and 0 < rep.icp["rmse"] < 2 * RES, rep.icp
+    assert "rmse" in rep.summary()
     (b,) = merge_batch([(m1, m2, bad_guess(), T_TRUE)], config=cfg)
     assert b.status == "ok", b.message
     np.testing.assert_allclose(b.report.T_1_2, rep.T_1_2, atol=1e-3)
+    assert b.report.icp["rmse"] == pytest.approx(rep.icp["rmse"], rel=1e-3)
 
 
 @pytest.mark.parametrize("loss_near, loss_far, plausible, chosen", [

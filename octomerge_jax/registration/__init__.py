@@ -9,6 +9,7 @@ from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best
                     default_levels, fused_log_odds, pose_from_increment, prepare_alignment,
                     problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
                     transformed_occupancy)
+from .evaluate import RegistrationStats, evaluate_registration
 from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
                   pad_points, stage_distances)
 from .metrics import (point_displacement, rotation_angle_error, rotation_error, translation_distance,
@@ -25,7 +26,7 @@ __all__ = [
     "AlignProblem", "AlignResult", "align_dense", "alignment_loss", "best_result", "default_levels",
     "fused_log_odds", "pose_from_increment", "prepare_alignment", "problem_loss",
     "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
-    "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded",
+    "RegistrationStats", "evaluate_registration", "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded",
     "pad_points", "stage_distances", "rotation_angle_error", "rotation_error",
     "translation_distance", "translation_error", "point_displacement", "HashGrid", "any_within", "build_grid",
     "build_grids", "nearest", "Overlap", "overlap", "occupied_points", "lift_2d",
