@@ -75,7 +75,8 @@ class MergeReport:
       ``num_inliers``, ``rmse`` [m], ``fitness``, ``correspondence_distance`` [m], ...; for
       ``"dense"`` the same keys for the dense alignment (status names ``DENSE_STATUS_NAMES``,
       the point statistics measured at its transform by ``point_stats``) and its own figures
-      under ``dense``; for
+      under ``dense`` (for ``"icp+dense"``: ICP's fields, and under ``dense`` the dense
+      alignment's with the point statistics at the transform used); for
       ``"multi"`` also ``best_index`` (the candidate chosen by map agreement,
       ``rank_by_map_agreement``), ``point_best_index`` (``icp_multi``'s own choice),
       ``map_loss`` per candidate, ``num_hypotheses``, ``num_basins``: the ICP runs left after
@@ -468,6 +469,8 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
             if dense_info["status"] not in (0, 1):
                 T_1_2 = T_icp
                 warnings.extend(retry)
+        if dense_info["status"] in (0, 1):  # its result is used: the point statistics there
+            dense_info.update(_timed(timings, "evaluate", point_stats, p1, p2, T_1_2, config, res))
         info = {**info, "dense": dense_info}
     # re-orthonormalise (float32 ICP output) so transform_map's rigidity check passes
     U, _, Vt = np.linalg.svd(T_1_2[:3, :3])
