@@ -41,25 +41,10 @@ import numpy as np
 from . import hostmem
 from .config import MergeConfig, config_from_dict, config_to_dict
 from .map import OccupancyMap, bucket_capacity
-from .pipeline import (
-    MergeError,
-    MergeReport,
-    _check_T,
-    _displacements,
-    _epsilons,
-    _fill_point_stats,
-    _icp_dict,
-    _icp_kwargs,
-    _icp_modules,
-    _multi_candidates,
-    _rank_and_refine,
-    _select_overlap,
-    _with_local_step,
-    check_resolutions,
-    merge,
-    overlap_margin,
-    transform_from_xyz_rpy,
-)
+from .pipeline import (MergeError, MergeReport, _check_T, _displacements, _epsilons, check_resolutions, merge,
+                       transform_from_xyz_rpy)
+from .refine import (_fill_point_stats, _icp_dict, _icp_kwargs, _icp_modules, _multi_candidates, _rank_and_refine,
+                     _select_overlap, _with_local_step, overlap_margin)
 
 __all__ = ["BatchResult", "merge_batch", "read_manifest", "run_manifest", "SUMMARY_FIELDS"]
 

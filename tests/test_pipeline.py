@@ -319,7 +319,7 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
     """refine="icp+dense": a dense failure from ICP's result (ICP in a wrong basin) retries dense
     from the initial guess; if that fails too, ICP's transform is kept and both failures are
     reported. (The dense solver is stubbed: this checks the pipeline's fallback logic.)"""
-    import octomerge_jax.pipeline as pipeline_mod
+    import octomerge_jax.refine as refine_mod
 
     m1, m2, T = small_pair()
     guess = perturbed()
@@ -337,7 +337,7 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
             return np.asarray(T_start, np.float64), info, None
         return run
 
-    monkeypatch.setattr(pipeline_mod, "_refine_dense", fake_dense([2, 0]))
+    monkeypatch.setattr(refine_mod, "_refine_dense", fake_dense([2, 0]))
     _, rep = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T)
     assert len(starts) == 2
     np.testing.assert_allclose(starts[1], guess)  # second start: the initial guess
@@ -346,7 +346,7 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
     assert rep.icp["dense"]["status"] == 0 and "initial guess" in rep.icp["dense"]["started_from"]
 
     starts.clear()
-    monkeypatch.setattr(pipeline_mod, "_refine_dense", fake_dense([2, 3]))
+    monkeypatch.setattr(refine_mod, "_refine_dense", fake_dense([2, 3]))
     _, rep2 = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T)
     assert len(starts) == 2
     np.testing.assert_allclose(rep2.T_1_2, starts[0], atol=1e-5)  # ICP's transform kept
@@ -359,7 +359,7 @@ def test_multi_local_step_refines_a_biased_pick_and_is_guarded():
     leaves them on partially overlapping maps, it lands near the truth with a lower map loss
     and is used; from the truth itself it may not lower the loss, and is then not used."""
     from octomerge_jax import registration as reg
-    from octomerge_jax.pipeline import _icp_kwargs, _refine_multi_locally
+    from octomerge_jax.refine import _icp_kwargs, _refine_multi_locally
     from octomerge_jax.registration import metrics
 
     m1, m2, T = small_pair()

@@ -168,7 +168,7 @@ def test_both_sources_take_the_far_pick_only_by_the_margin(monkeypatch, loss_nea
     grid's -0.19 / 0.89 after its local step); else the correlation (far) pick wins only
     when its map loss is lower by more than far_margin (3 %) of the near one's (the hall:
     -0.304 vs -0.291, far; the simulated lab: a wrong pose -0.276 vs -0.271)."""
-    pl = importlib.import_module("octomerge_jax.pipeline")
+    pl = importlib.import_module("octomerge_jax.refine")
 
     class Pose:
         def __init__(self, i):
@@ -217,7 +217,7 @@ def test_cli_flag_selects_the_hypotheses():
 def test_local_candidates_keep_one_row_per_pose_and_mark_poses_without_overlap():
     """A correlation pose with too little common space keeps its row (status too few inliers,
     so ranking cannot pick it): rows stay aligned with the hypotheses they came from."""
-    from octomerge_jax.pipeline import _icp_kwargs, _local_candidates
+    from octomerge_jax.refine import _icp_kwargs, _local_candidates
 
     m1, m2 = pair()
     p1 = np.asarray(reg.occupied_points(m1), np.float32)
