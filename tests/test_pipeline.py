@@ -382,6 +382,40 @@ def test_multi_local_step_refines_a_biased_pick_and_is_guarded():
     assert (local2 is not None) == info2["used"]
 
 
+def test_multi_local_step_falls_back_to_the_dense_alignment(monkeypatch):
+    """When neither the pick nor its local ICP result passes the dense status checks (a tilted
+    pick that ICP does not fix: ICP stubbed to return its start), the dense alignment from it
+    is used if its result passes them; a pick that passes them is left to ICP alone."""
+    import importlib
+
+    from octomerge_jax import registration as reg
+    from octomerge_jax.refine import _icp_kwargs, _refine_multi_locally, _scores_and_plausible
+    from octomerge_jax.registration import metrics
+
+    refine = importlib.import_module("octomerge_jax.refine")
+    m1, m2, T = small_pair()
+    cfg = MergeConfig()
+    p1 = np.asarray(reg.occupied_points(m1), np.float32)
+    p2 = np.asarray(reg.occupied_points(m2), np.float32)
+    problem = reg.prepare_alignment(m1, m2)
+    kw = _icp_kwargs(cfg, m1.resolution)
+    real_icp = reg.icp
+    stalled = lambda q2, q1, T0, **k: dataclasses.replace(real_icp(q2, q1, T0, **k),  # noqa: E731
+                                                          T_target_source=np.asarray(T0, np.float32))
+    monkeypatch.setattr(refine._reg(), "icp", stalled)
+    tilted = transform_from_xyz_rpy(0.12, -0.08, 0.05, 0.12, -0.08, 0.0) @ T
+    _, ok = _scores_and_plausible(problem, np.stack([tilted, T]))
+    assert not ok[0] and ok[1]  # the tilted pick fails the checks, the truth passes them
+    timings = {}
+    out, info = _refine_multi_locally(p1, p2, _pick(tilted), problem, cfg, m1.resolution, kw, timings)
+    assert info["used"] and info["dense"]["used"] and "dense_local" in timings, info
+    T_out = np.asarray(out.T_target_source, np.float64)
+    assert float(metrics.rotation_angle_error(T_out, T)) < 0.02
+    assert float(metrics.translation_distance(T_out, T)) < m1.resolution
+    out2, info2 = _refine_multi_locally(p1, p2, _pick(T), problem, cfg, m1.resolution, kw, {})
+    assert "dense" not in info2 and out2 is None  # plausible already: no dense step
+
+
 def _pick(T_pick):
     """An ``IcpResult`` with scalar fields and transform ``T_pick`` (what ``icp_multi`` reports
     as ``best``)."""
