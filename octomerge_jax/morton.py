@@ -43,6 +43,7 @@ __all__ = [
     "split_codes",
     "join_codes",
     "leaf_centers",
+    "leaf_cell_codes",
     "node_size",
     "level_shift",
     "keys_to_words",
@@ -167,6 +168,20 @@ def join_codes(words) -> np.ndarray:
 def leaf_centers(codes, depths, resolution: float) -> np.ndarray:
     """Centres ``(n, 3)`` float64 [m] of leaves given min-corner codes and depths."""
     return keys_to_coords(codes_to_keys(codes), resolution, np.asarray(depths))
+
+
+def leaf_cell_codes(codes, depths, index=None) -> tuple[np.ndarray, np.ndarray]:
+    """Host: the finest (depth-16) cells inside leaves, without expanding a tree. A leaf of
+    min-corner code ``c`` at depth ``d`` holds the ``8^(16-d)`` consecutive codes from ``c``;
+    number the cells of ``codes (n,)`` / ``depths (n,)`` in leaf order. ``index``: sorted int64
+    cell numbers to return (e.g. a random subset; default all of them). Returns ``(cell codes
+    (m,) uint64, leaf (m,) int64: the row of the leaf holding each)``."""
+    codes = np.asarray(codes, np.uint64)
+    cells = (np.uint64(1) << (np.uint64(3) * (TREE_DEPTH - np.asarray(depths)).astype(np.uint64))).astype(np.int64)
+    starts = np.cumsum(cells) - cells
+    index = np.arange(int(cells.sum()), dtype=np.int64) if index is None else np.asarray(index, np.int64)
+    leaf = np.searchsorted(starts, index, side="right") - 1
+    return codes[leaf] + (index - starts[leaf]).astype(np.uint64), leaf
 
 
 # ----------------------------------------------------------------------------- device (JAX)

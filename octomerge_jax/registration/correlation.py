@@ -50,8 +50,6 @@ from . import rigid
 
 __all__ = ["CorrelationResult", "correlation_search"]
 
-_D = morton.TREE_DEPTH
-
 
 @partial(jax.tree_util.register_dataclass, data_fields=["hypotheses", "scores", "yaws"], meta_fields=["cell"])
 @dataclasses.dataclass(frozen=True)
@@ -79,20 +77,11 @@ def _map_cells(m: OccupancyMap, k: int):
     ``(cell indices (n, 3) int64, occupied (n,) bool)``; cell ``i`` spans ``[i, i + 1) * res 2^k``."""
     from .dense import coarsen  # dense imports this package's modules; import on use
 
-    c = coarsen(m, k)
-    lv = c.leaves()
+    lv = coarsen(m, k).leaves()
     thr = float(np.asarray(m.params.occupancy_threshold_log_odds))
-    span = (np.int64(1) << (_D - lv.depths.astype(np.int64)))
-    keys = lv.keys.astype(np.int64) - morton.KEY_OFFSET  # lower corner in cells
-    out, occ = [], []
-    for s in np.unique(span):  # leaves of one size: their cells by an offset grid
-        sel = span == s
-        o = np.stack(np.meshgrid(*(np.arange(s),) * 3, indexing="ij"), -1).reshape(-1, 3)
-        out.append((keys[sel][:, None, :] + o[None]).reshape(-1, 3))
-        occ.append(np.repeat(lv.log_odds[sel] >= thr, o.shape[0]))
-    if not out:
-        return np.zeros((0, 3), np.int64), np.zeros(0, bool)
-    return np.concatenate(out), np.concatenate(occ)
+    cell_codes, leaf = morton.leaf_cell_codes(lv.codes, lv.depths)
+    keys = morton.codes_to_keys(cell_codes).astype(np.int64) - morton.KEY_OFFSET
+    return keys, lv.log_odds[leaf] >= thr
 
 
 def _point_cells(points, cell: float):

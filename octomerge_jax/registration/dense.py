@@ -293,15 +293,9 @@ def _cell_samples(m: OccupancyMap, mask: np.ndarray, budget: int, rng,
     codes, depths, lo = lv.codes[mask], lv.depths[mask], lv.log_odds[mask]
     if codes.size == 0 or budget <= 0:
         return np.zeros((0, 3)), np.zeros(0, np.float32)
-    cells = (np.uint64(1) << (np.uint64(3) * (_D - depths).astype(np.uint64))).astype(np.int64)
-    total = int(cells.sum())
-    if total <= budget:
-        idx = np.arange(total, dtype=np.int64)
-    else:
-        idx = np.sort(rng.choice(total, size=budget, replace=False))
-    starts = np.cumsum(cells) - cells
-    leaf = np.searchsorted(starts, idx, side="right") - 1
-    cell_codes = codes[leaf] + (idx - starts[leaf]).astype(np.uint64)
+    total = int(np.sum(np.int64(1) << (3 * (_D - depths.astype(np.int64)))))
+    idx = None if total <= budget else np.sort(rng.choice(total, size=budget, replace=False))
+    cell_codes, leaf = morton.leaf_cell_codes(codes, depths, idx)
     keys = morton.codes_to_keys(cell_codes)
     centres = morton.keys_to_coords(keys, m.resolution)
     if jitter:
