@@ -326,10 +326,12 @@ def test_map_agreement_prefers_candidates_that_pass_the_dense_status_checks(monk
 def test_merge_multi_recovers_a_1_7_rad_yaw_error():
     """Table 7.2 row 7 (1.7 rad), failed by the thesis: ``icp_multi`` alone picks the room turned
     by pi (``test_registration_icp``), re-ranking its candidates by map agreement does not."""
+    from octomerge_jax.config import MergeConfig
     from octomerge_jax.pipeline import merge
 
     m1, m2, T = room_maps(crop_1=(-1.0, 11.5), crop_2=(0.5, 13.0))
-    _, rep = merge(m1, m2, xyz_rpy64(0, 0, 0, 0, 0, 1.7) @ T, refine="multi", T_1_2_true=T)
+    cfg = MergeConfig().replace(registration={"refine": "multi", "hypotheses": "yaw_grid"})
+    _, rep = merge(m1, m2, xyz_rpy64(0, 0, 0, 0, 0, 1.7) @ T, config=cfg, T_1_2_true=T)
     assert rep.epsilon_r < 0.25 and rep.epsilon_t < 0.9, (rep.epsilon_r, rep.epsilon_t)  # coherent
     assert float(metrics.rotation_angle_error(rep.T_1_2, T)) < 0.05
     # 16 hypotheses (12 yaws, 4 roll/pitch), fewer runs after the coarse stages merge basins

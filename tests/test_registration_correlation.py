@@ -157,6 +157,20 @@ def test_merge_multi_with_correlation_hypotheses_recovers_the_truth():
     assert b.report.icp["rmse"] == pytest.approx(rep.icp["rmse"], rel=1e-3)
 
 
+def test_merge_multi_default_takes_both_sources():
+    """refine="multi" with its default hypotheses ("both"): the yaw grid's and the correlation
+    poses' candidates; from the bad guess (the yaw grid alone ends 3.2 m off on this hall) the
+    correlation pick is taken and the merge lands on the truth."""
+    m1, m2 = pair()
+    assert MergeConfig().registration.hypotheses == "both"
+    _, rep = merge(m1, m2, bad_guess(), refine="multi", T_1_2_true=T_TRUE)
+    assert rep.displacement < 0.1, rep.displacement
+    assert {"icp", "correlation", "icp_correlation"} <= set(rep.timings)
+    loc = rep.icp["local"]
+    assert loc["chosen"] == "far" and loc["pick_origin"].startswith("correlation"), loc
+    assert loc["plausible_far"], loc
+
+
 @pytest.mark.parametrize("loss_near, loss_far, plausible, chosen", [
     (-0.29, -0.304, (True, True), "far"), (-0.271, -0.276, (True, True), "near"),
     (-0.30, -0.28, (True, True), "near"), (-0.30, -0.28, (False, False), "near"),

@@ -59,8 +59,9 @@ def register(subparsers) -> None:
     a.add_argument("--refine", choices=REFINE_CHOICES,
                    help="icp (default), multi (multi-hypothesis ICP for poor guesses) or none")
     a.add_argument("--hypotheses", choices=HYPOTHESES_CHOICES,
-                   help="starts of --refine multi: yaw_grid (default: the guess turned in yaw), correlation "
-                        "(global search over yaw x translation, for partial overlap and guesses metres off) or both")
+                   help="starts of --refine multi: yaw_grid (the guess turned in yaw), correlation "
+                        "(global search over yaw x translation, for partial overlap and guesses metres off) or "
+                        "both (default)")
     a.add_argument("--overlap", choices=("voxel", "bbox", "none"), help="points fed to ICP (default bbox, thesis Alg. 2)")
     a.add_argument("--interpolation", choices=("trilinear", "nearest", "thesis"),
                    help="resampling of map 2 (default trilinear)")
