@@ -88,9 +88,9 @@ class RegistrationConfig:
       pitch) or ``"both"`` (the default). Measured on the simulated lab / office ``.bt`` pairs
       (0.05 m), guesses off by six yaws (0.5-3 rad, + 0.36 m) and five with 0.05-0.15 rad of
       roll / pitch too (22 rows), right (< 0.1 m): ``"both"`` 22 (0.012-0.030 m, 20-35 s warm
-      here), ``"correlation"`` 19 (tilted lab 2 of 5; 8-14 s), ``"yaw_grid"`` 7 of the 12 flat
-      rows (the lab turned by pi, the office slid along its corridor; 9-16 s); the failures are
-      complementary (large yaw / translation vs tilt). With ``"both"`` the correlation candidates' pick is taken over the
+      here), ``"correlation"`` 19 (tilted lab 2 of 5; 8-14 s), ``"yaw_grid"`` 17 (all tilted,
+      7 of 12 flat: the lab turned by pi, the office slid along its corridor; 8-16 s); the
+      failures are complementary (large yaw / translation vs tilt). With ``"both"`` the correlation candidates' pick is taken over the
       yaw grid's (each after its local step) when only it passes the dense status checks
       (agreement, overlap), else only when its map loss is lower by more than ``far_margin``
       (relative): where the maps

@@ -348,10 +348,10 @@ def test_start_level_skips_the_coarse_levels(pair, problem):
     fine = lambda a: a[j:]  # noqa: E731
 
     def only_fine(p):
-        return None if p is None else dataclasses.replace(
+        return dataclasses.replace(
             p, map1=jax.tree_util.tree_map(fine, p.map1), scale=fine(p.scale), points2=fine(p.points2),
             signed2=fine(p.signed2), weight2=fine(p.weight2), occupied2=fine(p.occupied2),
-            coverage_norm=fine(p.coverage_norm), levels=p.levels[j:], reverse=only_fine(p.reverse))
+            coverage_norm=fine(p.coverage_norm), levels=p.levels[j:], reverse=p.reverse)  # finest level only
 
     ref = dense.solve_alignment(only_fine(problem), T0, maxiter=MAXITER)
     np.testing.assert_allclose(np.asarray(r.T_1_2), np.asarray(ref.T_1_2), atol=1e-5)

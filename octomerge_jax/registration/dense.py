@@ -40,10 +40,13 @@ is a fraction of a voxel and does not cancel where surfaces are seen from one si
 (floors): the example room aligned with itself drifts 0.27 voxel down; the simulated lab /
 office (0.05 m, ``.bt``) solved from the truth ended 0.020 / 0.033 m low and 0.006 / 0.008 rad
 off, and ranked a pose one voxel off above the truth. ``prepare_alignment(symmetric=True)``
-(the default) also samples map 2 at map 1's points under ``T_1_2^-1`` (``AlignProblem.reverse``)
-and averages the two losses, whose biases are opposite: lab / office from the truth within
-0.009 m and 0.005 rad, the example room exactly at the truth. Twice the sampling,
-``solve_alignment`` 1.3-1.5x the time. The status checks stay one-way (map 2 in map 1).
+(the default) also samples map 2 at map 1's points under ``T_1_2^-1`` at the finest level
+(``AlignProblem.reverse``) and averages the two losses there, whose biases are opposite: lab /
+office from the truth within 0.009 m and 0.005 rad, the example room exactly at the truth. The
+coarser levels, which only bring the pose into the finest level's basin, stay one-way: symmetric
+at every level, the 0.285 rad row of the 0.2 m grid (``bench_dense.py``) ended in a wrong
+minimum (17 of 18 rows right, 18 with the finest level only). The status checks stay one-way
+(map 2 in map 1).
 
 **Coarse to fine.** Trilinear interpolation only "sees" one voxel around each point, so the
 basin of the finest level is about one voxel. ``prepare_alignment`` therefore builds, for each
@@ -208,9 +211,10 @@ class AlignProblem:
       commonly known weight (1: ``sum w C + 0.1 sum w``; 0: ``sum w``, the plain mean). See
       ``prepare_alignment``.
     - ``levels``: static tuple of the coarsening exponents ``k``.
-    - ``reverse``: the problem with the maps' roles swapped (map 2 sampled at map 1's points,
-      same levels), or ``None``; with it the loss is symmetric (module docstring: one
-      direction alone is biased towards unknown space), the status checks stay map 2 -> 1.
+    - ``reverse``: the finest level's problem with the maps' roles swapped (map 2 sampled at
+      map 1's points; one level), or ``None``; with it the finest level's loss is symmetric
+      (module docstring: one direction alone is biased towards unknown space); the coarser
+      levels and the status checks stay map 2 -> 1.
     """
 
     map1: OccupancyMap
@@ -374,9 +378,9 @@ def prepare_alignment(m1: OccupancyMap, m2: OccupancyMap, *, levels=None,
       map_capacity, point_capacity: static capacities of the coarsened map 1 and of the points
         (default ``bucket_capacity`` of the largest level): fix them to share one compilation
         across pairs, or to stack problems (the reverse problem of a symmetric one gets them too).
-      symmetric: also prepare the reverse problem (map 2 sampled at map 1's points under
-        ``T_1_2^-1``) and average the two losses (``AlignProblem.reverse``; module docstring):
-        twice the work, and no bias towards unknown space.
+      symmetric: also prepare the finest level's reverse problem (map 2 sampled at map 1's
+        points under ``T_1_2^-1``) and average the two losses there (``AlignProblem.reverse``;
+        module docstring): no bias towards unknown space, twice the finest level's work.
 
     Raises ``ValueError`` (naming the argument) on mismatched resolutions, empty maps or bad
     options.
@@ -420,7 +424,7 @@ def prepare_alignment(m1: OccupancyMap, m2: OccupancyMap, *, levels=None,
         raise ValueError(f"coverage_norm must lie in [0, 1], got {coverage_norm!r}")
     reverse = None
     if symmetric:
-        reverse = prepare_alignment(m2, m1, levels=levels, max_points=max_points, free_weight=free_weight,
+        reverse = prepare_alignment(m2, m1, levels=levels[-1:], max_points=max_points, free_weight=free_weight,
                                     seed=seed, jitter=jitter, map_capacity=map_capacity,
                                     point_capacity=point_capacity, coverage_norm=coverage_norm, symmetric=False)
     return AlignProblem(
@@ -515,8 +519,13 @@ def _level_terms(lv, T_1_2):
 
 
 def _both_at(problem: AlignProblem, i):
-    """``(_at(problem, i), _at(problem.reverse, i) or None)``."""
-    return _at(problem, i), (None if problem.reverse is None else _at(problem.reverse, i))
+    """``(_at(problem, i), the reverse's finest level or None, level i is the finest)``; ``i``
+    an int (negative counts from the end) or traced."""
+    if problem.reverse is None:
+        return _at(problem, i), None, False
+    last = problem.num_levels - 1
+    finest = i % problem.num_levels == last if isinstance(i, (int, np.integer)) else jnp.asarray(i) == last
+    return _at(problem, i), _at(problem.reverse, 0), finest
 
 
 def _reverse_loss(rev, T_1_2):
@@ -525,10 +534,16 @@ def _reverse_loss(rev, T_1_2):
 
 
 def _loss(levels, T_1_2):
-    """The loss of ``_both_at``'s level pair: the mean of both directions when there is a reverse."""
-    fwd, rev = levels
+    """The loss of ``_both_at``'s triple: at the finest level of a symmetric problem the mean of
+    both directions (a ``cond`` when the level is traced), else map 2 -> 1."""
+    fwd, rev, finest = levels
     loss = _level_terms(fwd, T_1_2)[0]
-    return loss if rev is None else 0.5 * (loss + _reverse_loss(rev, T_1_2))
+    if rev is None:
+        return loss
+    both = lambda: 0.5 * (loss + _reverse_loss(rev, T_1_2))  # noqa: E731
+    if isinstance(finest, (bool, np.bool_)):
+        return both() if finest else loss
+    return jax.lax.cond(finest, both, lambda: loss)
 
 
 def problem_loss(problem: AlignProblem, T_1_2, level: int = -1):
@@ -568,7 +583,7 @@ def _objective(z, levels, T_start, center, radius):
 def _fine_scores(problem: AlignProblem, T_1_2):
     """``(loss, overlap, agreement)`` at the finest level under ``T_1_2 (4, 4)`` (``AlignResult``
     fields of the same names)."""
-    fine, rev = _both_at(problem, problem.num_levels - 1)
+    fine, rev, _ = _both_at(problem, problem.num_levels - 1)
     loss, cov, (_, known, lo) = _level_terms(fine, T_1_2)
     if rev is not None:
         loss = 0.5 * (loss + _reverse_loss(rev, T_1_2))
