@@ -48,7 +48,8 @@ class MergeReport:
       ``rank_by_map_agreement``), ``point_best_index`` (``icp_multi``'s own choice),
       ``map_loss`` per candidate, ``num_hypotheses``, ``num_basins``: the ICP runs left after
       merging hypotheses that reached one basin, and ``local``: the local ICP on the commonly
-      mapped subsets from the chosen candidate, ``used`` when it lowered the map loss, whose
+      mapped subsets from the chosen candidate, ``used`` when it lowered the map loss (or, under
+      ``dense``, the dense alignment from it when neither passed the dense status checks), whose
       convergence, iterations, inliers and rmse the top-level fields then report; a pick
       from the dense alignment has its point statistics measured at its transform,
       ``stats_evaluated``),
