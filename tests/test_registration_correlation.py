@@ -220,8 +220,10 @@ def test_cli_flag_selects_the_hypotheses():
                                       "--hypotheses", "correlation"])
     rc = config_from_args(args).registration
     assert (rc.refine, rc.hypotheses) == ("multi", "correlation")
-    assert config_from_args(build_parser().parse_args(["merge", "a.bt", "b.bt", "o.bt"])).registration.hypotheses \
-        == "yaw_grid"
+    default = config_from_args(build_parser().parse_args(["merge", "a.bt", "b.bt", "o.bt"])).registration
+    assert default.hypotheses == "both"
+    grid = build_parser().parse_args(["merge", "a.bt", "b.bt", "o.bt", "--hypotheses", "yaw_grid"])
+    assert config_from_args(grid).registration.hypotheses == "yaw_grid"
     with pytest.raises(SystemExit):
         build_parser().parse_args(["merge", "a.bt", "b.bt", "o.bt", "--hypotheses", "ransac"])
     with pytest.raises(ValueError, match="registration.hypotheses"):
