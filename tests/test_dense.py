@@ -198,6 +198,10 @@ def test_host_errors_name_the_argument(pair, problem):
         dense.solve_alignment(problem, np.eye(4), maxiter=0)
     with pytest.raises(ValueError, match="coverage_norm"):
         dense.prepare_alignment(m1, m2, coverage_norm=2.0)
+    # per-level options: the reverse problem (finest level only) takes the finest level's
+    p = dense.prepare_alignment(m1, m2, levels=(1, 0), max_points=256, coverage_norm=[0.5, 0.8])
+    np.testing.assert_allclose(np.asarray(p.reverse.coverage_norm), [0.8])
+    assert p.reverse.levels == (0,)
 
 
 # ----------------------------------------------------------------------------- solver

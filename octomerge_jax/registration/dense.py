@@ -424,9 +424,14 @@ def prepare_alignment(m1: OccupancyMap, m2: OccupancyMap, *, levels=None,
         raise ValueError(f"coverage_norm must lie in [0, 1], got {coverage_norm!r}")
     reverse = None
     if symmetric:
-        reverse = prepare_alignment(m2, m1, levels=levels[-1:], max_points=max_points, free_weight=free_weight,
-                                    seed=seed, jitter=jitter, map_capacity=map_capacity,
-                                    point_capacity=point_capacity, coverage_norm=coverage_norm, symmetric=False)
+        try:
+            reverse = prepare_alignment(m2, m1, levels=levels[-1:], max_points=max_points,
+                                        free_weight=free_weight, seed=seed, jitter=jitter,
+                                        map_capacity=map_capacity, point_capacity=point_capacity,
+                                        coverage_norm=cn[-1:], symmetric=False)
+        except ValueError as err:
+            raise ValueError(f"{err} (in the reverse problem: map 2 at the finest level, sampled at map 1's "
+                             "points; symmetric=False skips it)") from None
     return AlignProblem(
         map1=map1,
         scale=jnp.asarray([2.0 ** -k for k in levels], jnp.float32),
