@@ -88,8 +88,8 @@ class RegistrationConfig:
       pitch) or ``"both"`` (the default). Measured on the simulated lab / office ``.bt`` pairs
       (0.05 m), guesses off by six yaws (0.5-3 rad, + 0.36 m) and five with 0.05-0.15 rad of
       roll / pitch too (22 rows), right (< 0.1 m): ``"both"`` 22 (0.009-0.037 m, 14-25 s warm
-      here), ``"correlation"`` 19 (tilted lab 2 of 5; 8-14 s), ``"yaw_grid"`` 17 (all tilted,
-      7 of 12 flat: the lab turned by pi, the office slid along its corridor; 8-16 s); the
+      here), ``"correlation"`` 19 (tilted lab 2 of 5; 8-21 s), ``"yaw_grid"`` 16 (all tilted,
+      6 of 12 flat: the lab turned by pi, the office slid along its corridor; 7-15 s); the
       failures are complementary (large yaw / translation vs tilt). With ``"both"`` the
       correlation candidates' pick is taken over the yaw grid's (each after its local step)
       when only it passes the dense status checks (agreement, overlap), else only when its map
