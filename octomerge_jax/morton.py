@@ -43,6 +43,7 @@ __all__ = [
     "split_codes",
     "join_codes",
     "leaf_centers",
+    "leaf_cell_counts",
     "leaf_cell_codes",
     "node_size",
     "level_shift",
@@ -170,6 +171,12 @@ def leaf_centers(codes, depths, resolution: float) -> np.ndarray:
     return keys_to_coords(codes_to_keys(codes), resolution, np.asarray(depths))
 
 
+def leaf_cell_counts(depths) -> np.ndarray:
+    """Host: ``(n,)`` int64, the finest (depth-16) cells in a leaf at each of ``depths (n,)``:
+    ``8^(16 - d)``."""
+    return np.int64(1) << (3 * (TREE_DEPTH - np.asarray(depths).astype(np.int64)))
+
+
 def leaf_cell_codes(codes, depths, index=None) -> tuple[np.ndarray, np.ndarray]:
     """Host: the finest (depth-16) cells inside leaves, without expanding a tree. A leaf of
     min-corner code ``c`` at depth ``d`` holds the ``8^(16-d)`` consecutive codes from ``c``;
@@ -177,7 +184,7 @@ def leaf_cell_codes(codes, depths, index=None) -> tuple[np.ndarray, np.ndarray]:
     cell numbers to return (e.g. a random subset; default all of them). Returns ``(cell codes
     (m,) uint64, leaf (m,) int64: the row of the leaf holding each)``."""
     codes = np.asarray(codes, np.uint64)
-    cells = (np.uint64(1) << (np.uint64(3) * (TREE_DEPTH - np.asarray(depths)).astype(np.uint64))).astype(np.int64)
+    cells = leaf_cell_counts(depths)
     starts = np.cumsum(cells) - cells
     index = np.arange(int(cells.sum()), dtype=np.int64) if index is None else np.asarray(index, np.int64)
     leaf = np.searchsorted(starts, index, side="right") - 1

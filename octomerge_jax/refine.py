@@ -422,18 +422,16 @@ def _refine_multi_locally(p1, p2, pick, problem, config: MergeConfig, resolution
     # the dense alignment from it, padded to correlation_dense poses (that call's compiled shape)
     start = np.repeat((T_local if used else T_pick)[None], max(1, rc.correlation_dense), axis=0)
     level = _level_near(problem, max(0.4, 4.0 * resolution))
-    dense = _dense_candidates(problem, start, level, timings, "dense_local").best
-    T_dense = np.asarray(dense.T_target_source, np.float64)
-    if int(dense.status) != 0 or not np.all(np.isfinite(T_dense)):  # failed its own status checks
+    # its status says whether it passes the checks (solve_alignment's thresholds are _MIN_*)
+    found = _dense_candidates(problem, start, level, timings, "dense_local")
+    dense = found.best
+    if int(dense.status) != 0 or not np.all(np.isfinite(np.asarray(dense.T_target_source))):
         info["dense"] = {"used": False, "status": "failed the status checks"}
         return (local if used else None), info
-    l_dense, ok_dense = _scores_and_plausible(problem, np.stack([T_dense, T_dense]))
-    info["dense"] = {"used": bool(ok_dense[0]), "map_loss": round(float(l_dense[0]), 5),
+    info["dense"] = {"used": True, "map_loss": round(-float(found.scores[int(found.best_index)]), 5),
                      "num_iterations": int(dense.num_iterations)}
-    if ok_dense[0]:
-        info["used"] = True
-        return dense, info
-    return (local if used else None), info
+    info["used"] = True
+    return dense, info
 
 
 def _with_local_step(info: dict, pick, local, local_info: dict):

@@ -353,22 +353,28 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
     assert sum("dense alignment failed" in w for w in rep2.warnings) == 2
 
 
-def test_multi_local_step_refines_a_biased_pick_and_is_guarded():
-    """refine="multi" ends with one ICP on the commonly mapped subsets from the candidate it
-    picked (the thesis's local step): from a pick 0.06 rad / 0.2 m off, as whole-cloud ICP
-    leaves them on partially overlapping maps, it lands near the truth with a lower map loss
-    and is used; from the truth itself it may not lower the loss, and is then not used."""
+@lru_cache(maxsize=None)
+def _local_step_inputs():
+    """``(m1, T, cfg, p1, p2, problem, icp kwargs)`` for ``_refine_multi_locally`` on the small pair."""
     from octomerge_jax import registration as reg
-    from octomerge_jax.refine import _icp_kwargs, _refine_multi_locally
-    from octomerge_jax.registration import metrics
+    from octomerge_jax.refine import _icp_kwargs
 
     m1, m2, T = small_pair()
     cfg = MergeConfig()
     p1 = np.asarray(reg.occupied_points(m1), np.float32)
     p2 = np.asarray(reg.occupied_points(m2), np.float32)
-    problem = reg.prepare_alignment(m1, m2)
-    kw = _icp_kwargs(cfg, m1.resolution)
+    return m1, T, cfg, p1, p2, reg.prepare_alignment(m1, m2), _icp_kwargs(cfg, m1.resolution)
 
+
+def test_multi_local_step_refines_a_biased_pick_and_is_guarded():
+    """refine="multi" ends with one ICP on the commonly mapped subsets from the candidate it
+    picked (the thesis's local step): from a pick 0.06 rad / 0.2 m off, as whole-cloud ICP
+    leaves them on partially overlapping maps, it lands near the truth with a lower map loss
+    and is used; from the truth itself it may not lower the loss, and is then not used."""
+    from octomerge_jax.refine import _refine_multi_locally
+    from octomerge_jax.registration import metrics
+
+    m1, T, cfg, p1, p2, problem, kw = _local_step_inputs()
     biased = transform_from_xyz_rpy(0.15, -0.12, 0.0, 0.0, 0.0, 0.06) @ T
     local, info = _refine_multi_locally(p1, p2, _pick(biased), problem, cfg, m1.resolution, kw, {})
     assert info["used"] and local is not None, info
@@ -389,16 +395,11 @@ def test_multi_local_step_falls_back_to_the_dense_alignment(monkeypatch):
     import importlib
 
     from octomerge_jax import registration as reg
-    from octomerge_jax.refine import _icp_kwargs, _refine_multi_locally, _scores_and_plausible
+    from octomerge_jax.refine import _refine_multi_locally, _scores_and_plausible
     from octomerge_jax.registration import metrics
 
     refine = importlib.import_module("octomerge_jax.refine")
-    m1, m2, T = small_pair()
-    cfg = MergeConfig()
-    p1 = np.asarray(reg.occupied_points(m1), np.float32)
-    p2 = np.asarray(reg.occupied_points(m2), np.float32)
-    problem = reg.prepare_alignment(m1, m2)
-    kw = _icp_kwargs(cfg, m1.resolution)
+    m1, T, cfg, p1, p2, problem, kw = _local_step_inputs()
     real_icp = reg.icp
     stalled = lambda q2, q1, T0, **k: dataclasses.replace(real_icp(q2, q1, T0, **k),  # noqa: E731
                                                           T_target_source=np.asarray(T0, np.float32))

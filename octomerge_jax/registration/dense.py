@@ -313,7 +313,7 @@ def _cell_samples(m: OccupancyMap, mask: np.ndarray, budget: int, rng,
     codes, depths, lo = lv.codes[mask], lv.depths[mask], lv.log_odds[mask]
     if codes.size == 0 or budget <= 0:
         return np.zeros((0, 3)), np.zeros(0, np.float32)
-    total = int(np.sum(np.int64(1) << (3 * (_D - depths.astype(np.int64)))))
+    total = int(morton.leaf_cell_counts(depths).sum())
     idx = None if total <= budget else np.sort(rng.choice(total, size=budget, replace=False))
     cell_codes, leaf = morton.leaf_cell_codes(codes, depths, idx)
     keys = morton.codes_to_keys(cell_codes)
@@ -538,17 +538,21 @@ def _reverse_loss(rev, T_1_2):
     return _level_terms(rev, rigid.inverse(jnp.asarray(T_1_2, jnp.float32)))[0]
 
 
-def _loss(levels, T_1_2):
-    """The loss of ``_both_at``'s triple: at the finest level of a symmetric problem the mean of
-    both directions (a ``cond`` when the level is traced), else map 2 -> 1."""
-    fwd, rev, finest = levels
-    loss = _level_terms(fwd, T_1_2)[0]
+def _symmetrised(loss, rev, finest, T_1_2):
+    """The map 2 -> 1 ``loss`` of a level, averaged with the reverse direction's at the finest
+    level of a symmetric problem (``_both_at``'s ``rev`` / ``finest``; a ``cond`` when traced)."""
     if rev is None:
         return loss
     both = lambda: 0.5 * (loss + _reverse_loss(rev, T_1_2))  # noqa: E731
     if isinstance(finest, (bool, np.bool_)):
         return both() if finest else loss
     return jax.lax.cond(finest, both, lambda: loss)
+
+
+def _loss(levels, T_1_2):
+    """The loss of ``_both_at``'s triple (``_symmetrised``)."""
+    fwd, rev, finest = levels
+    return _symmetrised(_level_terms(fwd, T_1_2)[0], rev, finest, T_1_2)
 
 
 def problem_loss(problem: AlignProblem, T_1_2, level: int = -1):
@@ -588,10 +592,9 @@ def _objective(z, levels, T_start, center, radius):
 def _fine_scores(problem: AlignProblem, T_1_2):
     """``(loss, overlap, agreement)`` at the finest level under ``T_1_2 (4, 4)`` (``AlignResult``
     fields of the same names)."""
-    fine, rev, _ = _both_at(problem, problem.num_levels - 1)
+    fine, rev, finest = _both_at(problem, problem.num_levels - 1)
     loss, cov, (_, known, lo) = _level_terms(fine, T_1_2)
-    if rev is not None:
-        loss = 0.5 * (loss + _reverse_loss(rev, T_1_2))
+    loss = _symmetrised(loss, rev, finest, T_1_2)
     w_occ = jnp.where(fine[5], fine[4], 0.0)
     overlap = jnp.sum(w_occ * cov) / jnp.maximum(jnp.sum(w_occ), 1e-30)
     # on map 1's surfaces: one of the 8 voxels the point interpolates from is occupied

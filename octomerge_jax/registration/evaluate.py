@@ -73,7 +73,7 @@ def evaluate_registration(source, target, T_target_source, max_correspondence_di
                          f"{max_correspondence_distance!r}")
     if int(cell_capacity) < 1:
         raise ValueError(f"cell_capacity must be >= 1, got {cell_capacity!r}")
-    host = not any(isinstance(x, jax.core.Tracer) or isinstance(x, jax.Array)
+    host = not any(isinstance(x, jax.Array)  # tracers included
                    for x in (source, target, T_target_source, source_count, target_count))
     if host:
         T = rigid.check_rigid(T_target_source, "T_target_source").astype(np.float64)
