@@ -43,7 +43,8 @@ class MergeReport:
       ``"dense"`` the same keys for the dense alignment (status names ``DENSE_STATUS_NAMES``,
       the point statistics measured at its transform by ``point_stats``) and its own figures
       under ``dense`` (for ``"icp+dense"``: ICP's fields, and under ``dense`` the dense
-      alignment's with the point statistics at the transform used); for
+      alignment's with the point statistics at the transform used; ``start_level``, the index
+      of the first level solved, and ``restarted``, ``AlignResult.restarted``); for
       ``"multi"`` also ``best_index`` (the candidate chosen by map agreement,
       ``rank_by_map_agreement``), ``point_best_index`` (``icp_multi``'s own choice),
       ``map_loss`` per candidate, ``num_hypotheses``, ``num_basins``: the ICP runs left after

@@ -325,9 +325,12 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
     guess = perturbed()
     starts = []
 
+    within = []
+
     def fake_dense(outcomes):
-        def run(_m1, _m2, T_start, timings, warnings):
+        def run(_m1, _m2, T_start, timings, warnings, within_m=None):
             starts.append(np.asarray(T_start, np.float64))
+            within.append(within_m)
             status = outcomes[len(starts) - 1]
             info = {"status": status, "converged": status == 0, "agreement": 0.5, "loss": 0.0,
                     "num_iterations": 3}
@@ -342,6 +345,8 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
     assert len(starts) == 2
     np.testing.assert_allclose(starts[1], guess)  # second start: the initial guess
     assert not np.allclose(starts[0], guess)  # first start: ICP's result
+    # from ICP's result the levels coarser than its last correspondence distance are skipped
+    assert within[0] == pytest.approx(2 * RES) and within[1] is None
     np.testing.assert_allclose(rep.T_1_2, T, atol=1e-6)
     assert rep.icp["dense"]["status"] == 0 and "initial guess" in rep.icp["dense"]["started_from"]
 
