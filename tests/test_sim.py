@@ -8,7 +8,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from octomerge_jax import tree
-from octomerge_jax.sim import (DepthCamera, SpinningLidar, cast_rays, cast_rays_host,
+from octomerge_jax.sim import (DepthCamera, SpinningLidar, campus, cast_rays, cast_rays_host,
                                lab_room, make_two_robot_maps, mesh_scene, office_floor,
                                poses_along_path, resample_path, scan)
 from octomerge_jax.sim.trajectory import apply_odometry_drift
@@ -103,6 +103,36 @@ def test_scenes_are_seeded():
     assert s.triangles.shape == (12, 3, 3)
     with pytest.raises(ValueError, match="path1"):
         mesh_scene(trimesh.creation.box(), [0, 0], [[1, 1]])
+
+
+def test_campus_is_an_outdoor_site_mapped_by_a_lidar():
+    """The campus scene: ~100 x 60 m, low-poly (brute-force ray casting), seeded, a lidar and
+    2 m scan spacing suggested; its two robots map tens of metres along the road (nothing
+    blocks the paths) and both see the middle: map 2's occupied voxels moved by ``T_1_2``
+    land in map 1's known space and mostly on its surfaces."""
+    sc = campus(seed=0)
+    lo, hi = sc.bounds
+    assert hi[0] - lo[0] >= 100 and hi[1] - lo[1] >= 60 and len(sc.mesh.faces) < 3000
+    assert isinstance(sc.sensor, SpinningLidar) and sc.spacing == 2.0
+    assert np.array_equal(campus(seed=0).triangles, sc.triangles)
+    assert not np.array_equal(campus(seed=1).triangles, sc.triangles)
+    with pytest.raises(ValueError, match="size"):
+        campus(size=(20.0, 60.0))
+    lidar = SpinningLidar(num_beams=8, azimuth_steps=360, max_range=40.0)
+    m1, m2, T = make_two_robot_maps("campus", 0.5, sensor=lidar, spacing=8.0, max_range=30.0)
+    occ = [m.leaves().centers[np.asarray(m.is_occupied())[: m.num_leaves]] for m in (m1, m2)]
+    for o in occ:
+        assert np.ptp(o[:, 0]) > 60 and np.ptp(o[:, 1]) > 30  # the lidar's range, not a box around it
+    kd = cKDTree(occ[0])
+
+    def on_surfaces(T_1_2):
+        p = occ[1] @ T_1_2[:3, :3].T + T_1_2[:3, 3]
+        known = np.asarray(tree.lookup(m1, p)[1])
+        return known.mean(), np.mean(kd.query(p[known])[0] <= 0.5 * np.sqrt(3))
+
+    overlap, right = on_surfaces(T)
+    assert 0.1 < overlap < 0.9 and right > 0.8, (overlap, right)  # overlapping, not the same map
+    assert on_surfaces(np.eye(4))[1] < right - 0.3  # the frames really differ (measured 0.39 vs 0.87)
 
 
 @pytest.fixture(scope="module")

@@ -7,14 +7,14 @@ triangles) 300k rays take ~0.2 s on 2 CPU cores, so a grid/BVH does not pay here
 
 from .datasets import RobotRun, build_map, make_two_robot_maps, simulate_runs
 from .raycast import cast_rays, cast_rays_host, mesh_triangles
-from .scenes import Scene, lab_room, make_scene, mesh_scene, office_floor
+from .scenes import Scene, campus, lab_room, make_scene, mesh_scene, office_floor
 from .sensors import DepthCamera, SpinningLidar, kinect_axial_noise_std, scan
 from .trajectory import apply_odometry_drift, pose_from_xyz_rpy, poses_along_path, resample_path
 
 __all__ = [
     "RobotRun", "build_map", "make_two_robot_maps", "simulate_runs",
     "cast_rays", "cast_rays_host", "mesh_triangles",
-    "Scene", "lab_room", "make_scene", "mesh_scene", "office_floor",
+    "Scene", "campus", "lab_room", "make_scene", "mesh_scene", "office_floor",
     "DepthCamera", "SpinningLidar", "kinect_axial_noise_std", "scan",
     "apply_odometry_drift", "pose_from_xyz_rpy", "poses_along_path", "resample_path",
 ]

@@ -51,7 +51,7 @@ def build_map(scans, poses_map_sensor, resolution: float, max_range: float = -1.
                                max_range)
 
 
-def simulate_runs(scene="lab", *, sensor=None, spacing: float = 0.5, yaw_2_rad: float = np.pi / 4,
+def simulate_runs(scene="lab", *, sensor=None, spacing: float | None = None, yaw_2_rad: float = np.pi / 4,
                   offset_2=(1.5, -0.8, 0.0), drift_translation: float = 0.0,
                   drift_yaw_rad: float = 0.0, seed: int = 0) -> tuple[RobotRun, RobotRun, np.ndarray]:
     """Simulate the two robots' scans along the scene's paths.
@@ -60,7 +60,10 @@ def simulate_runs(scene="lab", *, sensor=None, spacing: float = 0.5, yaw_2_rad: 
     ``drift_translation`` [m per m travelled] and ``drift_yaw_rad`` [rad per m] add odometry drift.
     """
     sc: Scene = make_scene(scene, seed)
-    sensor = DepthCamera(width=128, height=96) if sensor is None else sensor
+    if sensor is None:  # the scene's suggestion, else the default depth camera
+        sensor = DepthCamera(width=128, height=96) if sc.sensor is None else sc.sensor
+    if spacing is None:
+        spacing = 0.5 if sc.spacing is None else sc.spacing
     rng = np.random.default_rng(seed)
     T_1_2 = pose_from_xyz_rpy(*offset_2, 0.0, 0.0, yaw_2_rad)
     runs = []
@@ -74,7 +77,7 @@ def simulate_runs(scene="lab", *, sensor=None, spacing: float = 0.5, yaw_2_rad: 
     return runs[0], runs[1], T_1_2
 
 
-def make_two_robot_maps(scene="lab", resolution: float = 0.1, *, sensor=None, spacing: float = 0.5,
+def make_two_robot_maps(scene="lab", resolution: float = 0.1, *, sensor=None, spacing: float | None = None,
                         yaw_2_rad: float = np.pi / 4, offset_2=(1.5, -0.8, 0.0),
                         max_range: float = -1.0, drift_translation: float = 0.0,
                         drift_yaw_rad: float = 0.0, seed: int = 0,
@@ -82,10 +85,13 @@ def make_two_robot_maps(scene="lab", resolution: float = 0.1, *, sensor=None, sp
     """Two robots map overlapping parts of ``scene``; returns ``(map1, map2, T_1_2)``.
 
     Args:
-      scene: a ``Scene`` or ``"lab"`` (thesis §7.2) / ``"office"`` (§7.1).
+      scene: a ``Scene`` or ``"lab"`` (thesis §7.2) / ``"office"`` (§7.1) / ``"campus"``
+        (outdoor, ~100 x 60 m; at 0.2 m ~1M leaves per map, ~2 min to simulate here).
       resolution: voxel size [m] of both maps.
-      sensor: ``DepthCamera`` (default 128 x 96, Kinect FOV and range) or ``SpinningLidar``.
-      spacing: distance between scans along each path [m].
+      sensor: ``DepthCamera`` or ``SpinningLidar``; default the scene's suggestion (the
+        campus: a 16-beam lidar), else a 128 x 96 depth camera (Kinect FOV and range).
+      spacing: distance between scans along each path [m]; default the scene's (campus 2 m)
+        or 0.5 m.
       yaw_2_rad, offset_2: robot 2's map frame in robot 1's (thesis: pi/4 yaw).
       max_range: insertion max range [m] (< 0: none).
       drift_translation, drift_yaw_rad: odometry drift per metre (0 = perfect localisation).

@@ -7,6 +7,10 @@ paths that cover different but overlapping parts of it, like the thesis's two ma
   (thesis §7.2, Fig. 7.9): robot 1 circles the boxes, robot 2 travels around the fence.
 - ``office_floor``: a floor of rooms on both sides of a corridor (thesis §7.1's
   ``wg_collada_world``): robot 1 maps the west half, robot 2 the east half; both see the middle.
+- ``campus``: an outdoor site of ~100 x 60 m (buildings, trees, open ground) along a road, for
+  a spinning lidar (the scene's suggested sensor): robot 1 drives the west part, robot 2 the
+  east part, overlapping in the middle. At 0.2 m each map has ~1M leaves, the scale of
+  OctoMap's outdoor datasets, and the ground is seen at grazing angles.
 - ``mesh_scene``: any trimesh mesh (or a mesh file) with user paths.
 
 Scenes are low-poly on purpose (boxes, wall slabs): ray casting tests every triangle.
@@ -22,7 +26,7 @@ import trimesh
 
 from .raycast import mesh_triangles
 
-__all__ = ["Scene", "lab_room", "office_floor", "mesh_scene", "make_scene"]
+__all__ = ["Scene", "lab_room", "office_floor", "campus", "mesh_scene", "make_scene"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,6 +41,8 @@ class Scene:
         ``(k, 2)`` points, one per waypoint (see ``poses_along_path``).
       closed: per path, whether it loops back to its start.
       sensor_height: sensor height above the floor [m].
+      sensor: suggested sensor (``None``: the simulation's default depth camera).
+      spacing: suggested distance between scans along the paths [m] (``None``: 0.5 m).
     """
 
     mesh: trimesh.Trimesh
@@ -45,6 +51,8 @@ class Scene:
     targets: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
     closed: tuple[bool, bool] = (False, False)
     sensor_height: float = 0.5
+    sensor: object = None
+    spacing: float | None = None
 
     @property
     def triangles(self) -> np.ndarray:
@@ -183,6 +191,45 @@ def office_floor(seed: int = 0, size=(16.0, 10.0), height: float = 2.5,
     return Scene(mesh, "office_floor", (path1, path2), (None, None), (False, False), 0.5)
 
 
+def campus(seed: int = 0, size=(100.0, 60.0), num_buildings: int = 14, num_trees: int = 40,
+           road_half_width: float = 6.0) -> Scene:
+    """An outdoor campus: a ground plane, ``num_buildings`` boxes 4-14 m high and
+    ``num_trees`` trees (trunk and crown) on both sides of a road along x, with a 16-beam
+    spinning lidar (40 m range) as the suggested sensor and a scan every 2 m.
+
+    Robot 1 drives the west 55 m of the road, robot 2 the east 55 m; both see the middle.
+    ``seed`` places the buildings and trees (never on the road).
+    """
+    from .sensors import SpinningLidar
+
+    rng = np.random.default_rng(seed)
+    sx, sy = float(size[0]), float(size[1])
+    if sx < 40 or sy < 4 * road_half_width:
+        raise ValueError(f"size: the campus needs at least 40 x {4 * road_half_width:g} m, got {size}")
+    hx, hy = sx / 2, sy / 2
+    parts = [_box((-hx - 5, -hy - 5, -0.2), (hx + 5, hy + 5, 0.0))]  # ground
+    side = lambda: rng.choice((-1.0, 1.0))  # noqa: E731
+    for _ in range(num_buildings):
+        w, d, h = rng.uniform(5, 15), rng.uniform(5, 12), rng.uniform(4, 14)
+        r = 0.5 * np.hypot(w, d)  # keeps the turned footprint off the road
+        cx = rng.uniform(-hx + r, hx - r)
+        cy = side() * rng.uniform(road_half_width + r, max(hy - r, road_half_width + r + 0.1))
+        parts.append(_box((cx - w / 2, cy - d / 2, 0.0), (cx + w / 2, cy + d / 2, h),
+                          yaw_rad=rng.uniform(0, np.pi)))
+    for _ in range(num_trees):
+        cx, cy = rng.uniform(-hx, hx), side() * rng.uniform(road_half_width - 2.0, hy)
+        trunk = trimesh.creation.cylinder(radius=0.25, height=3.0, sections=6)
+        parts.append(trunk.apply_translation((cx, cy, 1.5)))
+        parts.append(trimesh.creation.icosphere(subdivisions=0, radius=1.8).apply_translation((cx, cy, 4.0)))
+    mesh = trimesh.util.concatenate(parts)
+    x1 = np.linspace(-0.45 * sx, 0.1 * sx, 12)
+    x2 = np.linspace(-0.1 * sx, 0.45 * sx, 12)
+    path1 = np.stack([x1, np.sin(x1 / 7.0)], 1)
+    path2 = np.stack([x2, np.cos(x2 / 9.0) - 1.0], 1)
+    lidar = SpinningLidar(num_beams=16, azimuth_steps=900, max_range=40.0)
+    return Scene(mesh, "campus", (path1, path2), (None, None), (False, False), 1.2, lidar, 2.0)
+
+
 def mesh_scene(mesh, path1, path2, *, target1=None, target2=None, closed=(False, False),
                sensor_height: float = 0.5, name: str = "mesh") -> Scene:
     """A scene from any trimesh mesh (or a mesh file path trimesh can load) and two xy paths."""
@@ -201,11 +248,14 @@ def mesh_scene(mesh, path1, path2, *, target1=None, target2=None, closed=(False,
 
 
 def make_scene(scene, seed: int = 0) -> Scene:
-    """``Scene`` or a name (``"lab"``/``"lab_room"``, ``"office"``/``"office_floor"``)."""
+    """``Scene`` or a name (``"lab"``/``"lab_room"``, ``"office"``/``"office_floor"``,
+    ``"campus"``)."""
     if isinstance(scene, Scene):
         return scene
+    if scene == "campus":
+        return campus(seed)
     if scene in ("lab", "lab_room"):
         return lab_room(seed)
     if scene in ("office", "office_floor"):
         return office_floor(seed)
-    raise ValueError(f"scene: expected a Scene or 'lab' / 'office', got {scene!r}")
+    raise ValueError(f"scene: expected a Scene or 'lab' / 'office' / 'campus', got {scene!r}")
