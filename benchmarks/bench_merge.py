@@ -10,8 +10,14 @@ Anchor (issue 7): the thesis pipeline in C++ on OctoMap 1.10 on this 2-core CPU 
 7.7 s / 32.8 s end to end for 0.26M+0.31M / 1.05M+1.18M / 4.4M+4.7M leaves; use ``--res`` to
 reach those sizes (memory and minutes grow accordingly).
 
+``--campus RES`` adds an outdoor pair: the simulated campus (``sim.campus``, ~100 x 60 m,
+16-beam lidar; ~1M leaves per map at 0.2 m), written to ``.bt`` and read back as a user's
+maps would be, merged with each refinement from a guess off by 1 m / 0.08 rad (``multi``: 2 m
+/ 1.7 rad), with the mean displacement of map 2's occupied voxels before and after.
+
     .venv/bin/python benchmarks/bench_merge.py                       # 0.1, 0.05, 0.025 m
     .venv/bin/python benchmarks/bench_merge.py --res 0.1 --batch 8    # batch throughput only
+    .venv/bin/python benchmarks/bench_merge.py --no-sizes --batch 0 --campus 0.2
 """
 
 from __future__ import annotations
@@ -113,12 +119,50 @@ def bench_batch(res, n_pairs):
     print(f"\nspeed-up {t_loop / t_batch:.2f}x")
 
 
+CAMPUS_RUNS = (("icp", 1.0, 0.08), ("icp+dense", 1.0, 0.08), ("dense", 1.0, 0.08), ("multi", 2.0, 1.7))
+
+
+def bench_campus(res, repeats):
+    from octomerge_jax.io import load, save
+    from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
+    from octomerge_jax.sim import make_two_robot_maps
+
+    t0 = time.perf_counter()
+    m1, m2, T = make_two_robot_maps("campus", res, yaw_2_rad=0.9, offset_2=(40.0, 25.0, 0.3), max_range=30.0)
+    t_sim = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory() as d:  # as a user's maps: maximum likelihood, pruned
+        save(m1, Path(d) / "a.bt")
+        save(m2, Path(d) / "b.bt")
+        m1, m2 = load(Path(d) / "a.bt"), load(Path(d) / "b.bt")
+    print(f"\n## Outdoor campus at {res:g} m ({m1.num_leaves:,}+{m2.num_leaves:,} leaves from .bt, "
+          f"simulated in {t_sim:.0f} s)\n")
+    print("| refine | guess off (m, rad) | displacement before -> after [m] | eps_r | eps_t | report | "
+          f"first s | median of {repeats} s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for refine, dx, dyaw in CAMPUS_RUNS:
+        g = T @ transform_from_xyz_rpy(dx, -0.6 * dx, 0.0, 0.0, 0.0, dyaw)
+        times = []
+        for _ in range(repeats + 1):
+            t0 = time.perf_counter()
+            merged, rep = merge(m1, m2, g, refine=refine, T_1_2_true=T)
+            jax.block_until_ready(merged)
+            times.append(time.perf_counter() - t0)
+        status = rep.icp["status"] if rep.icp else "-"
+        if rep.warnings:
+            status += " (" + "; ".join(w.split(";")[0] for w in rep.warnings) + ")"
+        print(f"| {refine} | {dx:g}, {dyaw:g} | {rep.displacement_init:.3f} -> {rep.displacement:.3f} | "
+              f"{rep.epsilon_r:.4f} | {rep.epsilon_t:.3f} | {status} | {times[0]:.1f} | "
+              f"{statistics.median(times[1:]):.1f} |", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--res", type=float, nargs="+", default=[0.1, 0.05, 0.025])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--batch", type=int, default=8, help="pairs for the batch benchmark (0: skip)")
     ap.add_argument("--no-sizes", action="store_true")
+    ap.add_argument("--campus", type=float, nargs="*", default=[], metavar="RES",
+                    help="outdoor campus pairs at these resolutions [m] (e.g. 0.2; ~1 min to simulate each)")
     _host_memory.add_flag(ap)
     a = ap.parse_args(argv)
     reuse = _host_memory.apply(a)
@@ -129,6 +173,8 @@ def main(argv=None):
         bench_sizes(a.res, a.repeats)
     if a.batch:
         bench_batch(max(a.res), a.batch)
+    for res in a.campus:
+        bench_campus(res, a.repeats)
 
 
 if __name__ == "__main__":

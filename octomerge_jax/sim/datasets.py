@@ -86,7 +86,8 @@ def make_two_robot_maps(scene="lab", resolution: float = 0.1, *, sensor=None, sp
 
     Args:
       scene: a ``Scene`` or ``"lab"`` (thesis §7.2) / ``"office"`` (§7.1) / ``"campus"``
-        (outdoor, ~100 x 60 m; at 0.2 m ~1M leaves per map, ~2 min to simulate here).
+        (outdoor, ~100 x 60 m; at 0.2 m ~1M leaves per map, 0.4-0.5M as ``.bt``, ~1 min to
+        simulate here).
       resolution: voxel size [m] of both maps.
       sensor: ``DepthCamera`` or ``SpinningLidar``; default the scene's suggestion (the
         campus: a 16-beam lidar), else a 128 x 96 depth camera (Kinect FOV and range).
