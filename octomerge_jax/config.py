@@ -44,6 +44,7 @@ __all__ = [
 ]
 
 REFINE_CHOICES = ("icp", "multi", "none", "dense", "icp+dense")
+DEMO_SCENES = ("lab", "office", "campus")
 OVERLAP_CHOICES = ("voxel", "bbox", "none")
 ON_NOT_CONVERGED_CHOICES = ("warn", "error", "use_initial")
 COARSE_MATCHING_CHOICES = ("centroid", "symmetric", "nearest")  # registration.icp.COARSE_MATCHING
@@ -173,9 +174,9 @@ class DemoConfig:
     case, 0.265 rad of yaw, is not corrected by ICP on our lab scene: try ``--yaw-error``).
     """
 
-    scene: str = "lab"
+    scene: str = "lab"  # "lab", "office" or "campus" (outdoor, lidar: use resolution 0.2)
     resolution: float = 0.1
-    spacing: float = 0.5
+    spacing: float = 0.0  # between scans [m]; 0: the scene's own (lab / office 0.5, campus 2)
     seed: int = 0
     error_xyz: tuple[float, float, float] = (0.4, -0.3, 0.0)
     error_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.05)
@@ -242,6 +243,9 @@ def validate(cfg: MergeConfig) -> None:
         raise ValueError(f"batch.workers must be >= 0, got {cfg.batch.workers}")
     if not cfg.demo.resolution > 0:
         raise ValueError(f"demo.resolution must be positive, got {cfg.demo.resolution}")
+    _choice(cfg.demo.scene, DEMO_SCENES, "demo.scene")
+    if not (math.isfinite(cfg.demo.spacing) and cfg.demo.spacing >= 0):
+        raise ValueError(f"demo.spacing must be >= 0 metres (0: the scene's own), got {cfg.demo.spacing}")
 
 
 def _choice(value, choices, key):

@@ -283,6 +283,12 @@ def test_config_round_trip_and_errors(tmp_path):
     assert sorted(COARSE_MATCHING_CHOICES) == sorted(icp_mod.COARSE_MATCHING)
     (tmp_path / "part.toml").write_text("[fuse]\nrule = 'max'\n")
     assert load_config(tmp_path / "part.toml") == MergeConfig().replace(fuse={"rule": "max"})
+    # the demo's scene is checked with the config, not deep in the simulation
+    assert MergeConfig().replace(demo={"scene": "campus"}).demo.spacing == 0.0  # the scene's own
+    with pytest.raises(ValueError, match="demo.scene must be one of 'lab', 'office', 'campus'"):
+        MergeConfig().replace(demo={"scene": "garden"})
+    with pytest.raises(ValueError, match="demo.spacing must be >= 0"):
+        MergeConfig().replace(demo={"spacing": -1.0})
 
 
 def test_report_is_frozen_and_summary(merged_icp):
@@ -445,7 +451,7 @@ def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():
     from octomerge_jax.sim import make_two_robot_maps
 
     d = DemoConfig()
-    m1, m2, T = make_two_robot_maps(d.scene, d.resolution, spacing=d.spacing, seed=d.seed)
+    m1, m2, T = make_two_robot_maps(d.scene, d.resolution, spacing=d.spacing or None, seed=d.seed)
     guess = perturbed_guess(T, d.error_xyz, d.error_rpy_rad)
     _, rep_icp = merge(m1, m2, guess, refine="icp", T_1_2_true=T)
     _, rep = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T)

@@ -7,7 +7,7 @@ figures, and prints the thesis's errors eps_r / eps_t before and after ICP.
 
 from __future__ import annotations
 
-from ..config import REFINE_CHOICES
+from ..config import DEMO_SCENES, REFINE_CHOICES
 
 import argparse
 import time
@@ -21,6 +21,7 @@ EPILOG = """examples:
   octomerge demo                                  # writes ./octomerge-demo/
   octomerge demo --out-dir /tmp/demo --scene office --resolution 0.1
   octomerge demo --yaw-error 0.5 --refine multi   # a guess plain ICP cannot fix
+  octomerge demo --scene campus --resolution 0.2  # outdoor, 100 x 60 m, lidar (~2 min)
 
 Outputs: map1.bt, map2.bt (the robots' maps; rerun the merge with the printed command),
 merged.bt, merged_no_icp.bt, report.json, overlap_before_after.png (Fig. 7.6),
@@ -37,9 +38,11 @@ def register(subparsers) -> None:
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out-dir", type=Path, default=Path("octomerge-demo"), metavar="DIR",
                    help="output folder (created; default ./octomerge-demo)")
-    p.add_argument("--scene", choices=("lab", "office"), help="simulated scene (default lab)")
+    p.add_argument("--scene", choices=DEMO_SCENES, help="simulated scene (default lab; campus: outdoor, "
+                   "a 16-beam lidar, use --resolution 0.2)")
     p.add_argument("--resolution", type=float, help="voxel size [m] (default 0.1)")
-    p.add_argument("--spacing", type=float, help="distance between scans [m] (default 0.5)")
+    p.add_argument("--spacing", type=float, help="distance between scans [m] (default the scene's: 0.5 indoors, "
+                   "2 on the campus)")
     p.add_argument("--seed", type=int, help="scene/noise seed")
     p.add_argument("--yaw-error", type=float, metavar="RAD", help="yaw error of the guess (default 0.05)")
     p.add_argument("--xyz-error", type=float, nargs=3, metavar=("X", "Y", "Z"),
@@ -95,7 +98,7 @@ def run(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     print(f"simulating two robots in the {d.scene} scene at {d.resolution:g} m ...", flush=True)
-    m1, m2, T_true = make_two_robot_maps(d.scene, d.resolution, spacing=d.spacing, seed=d.seed)
+    m1, m2, T_true = make_two_robot_maps(d.scene, d.resolution, spacing=d.spacing or None, seed=d.seed)
     t_sim = time.perf_counter() - t0
     print(f"  map 1: {m1.num_leaves:,} leaves, map 2: {m2.num_leaves:,} leaves ({t_sim:.1f} s)")
     save(m1, out / "map1.bt")
