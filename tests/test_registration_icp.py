@@ -183,16 +183,18 @@ def test_icp_multi_sequential_equals_batched_on_converged_candidates():
 
 def test_icp_multi_runs_each_basin_once_and_resumes_exactly():
     """After each coarse stage, hypotheses that left it within ``basin_tolerance`` of each other
-    go on as one run: copies of a hypothesis (and one 1 mm / 0.1 mrad away) share their leader's
-    result and ``basin`` index; a distinct start keeps its own. With ``basin_tolerance=0``
+    go on as one run: a hypothesis 1 mm / 0.1 mrad from another shares its leader's result and
+    ``basin`` index; a distinct start keeps its own. With ``basin_tolerance=0``
     every candidate runs alone, and the staged runs (stopped at each stage's end, resumed)
-    give exactly the single ``icp`` run from the same start."""
+    give exactly the single ``icp`` run from the same start. One after another, a run stops
+    as soon as it comes within the stage's tolerance of where an earlier one left the stage:
+    a start at the truth merges before its first step into the run that reached it."""
     rng = np.random.default_rng(3)
     tgt = rng.uniform(-2.0, 2.0, (700, 3)).astype(np.float32)
     T = xyz_rpy64(0.1, -0.05, 0.02, 0.0, 0.0, 0.15)
     src = _moved(tgt[:500], np.linalg.inv(T))
     near = xyz_rpy64(0.001, 0.0, 0.0, 0.0, 0.0, 1e-4)
-    hyps = np.stack([np.eye(4), xyz_rpy64(0, 0, 0, 0, 0, 0.3), np.eye(4), near, xyz_rpy64(0, 0, 0, 0, 0, 2.5)])
+    hyps = np.stack([np.eye(4), xyz_rpy64(0, 0, 0, 0, 0, 0.3), T, near, xyz_rpy64(0, 0, 0, 0, 0, 2.5)])
     merged = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True)
     basin = np.asarray(merged.basin).tolist()
     assert basin[2] == basin[3] == 0 and basin[4] == 4, basin
@@ -201,6 +203,9 @@ def test_icp_multi_runs_each_basin_once_and_resumes_exactly():
             np.testing.assert_array_equal(np.asarray(leaf)[i], np.asarray(leaf)[j], err_msg=name)
     alone = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True, basin_tolerance=0.0)
     assert np.asarray(alone.basin).tolist() == list(range(5))
+    ran, ran_alone = np.asarray(merged.num_iterations_run), np.asarray(alone.num_iterations_run)
+    np.testing.assert_array_equal(ran_alone, np.asarray(alone.candidates.num_iterations))
+    assert ran[2] == 0 < ran_alone[2] and ran[0] == ran_alone[0] and ran.sum() < ran_alone.sum(), (ran, ran_alone)
     for i in (0, 1, 3):  # not the 2.5 rad start: its run (1.8 rad off) is chaotic in float rounding
         single = icp_mod.icp(src, tgt, hyps[i], resolution=0.1)
         cand = jax.tree_util.tree_map(lambda a, i=i: a[i], alone.candidates)
