@@ -17,7 +17,15 @@ maps would be, merged with each refinement from a guess off by 1 m / 0.08 rad (`
 
     .venv/bin/python benchmarks/bench_merge.py                       # 0.1, 0.05, 0.025 m
     .venv/bin/python benchmarks/bench_merge.py --res 0.1 --batch 8    # batch throughput only
+``--guess-grid RES`` merges the simulated lab and office pairs (``make_two_robot_maps``, read
+back from ``.bt``) with ``refine="multi"`` from 11 far guesses each: the truth turned by six
+yaws (0.5-3 rad) + 0.36 m, and five with roll / pitch errors too (0.05-0.15 rad, + 0.5-2 m);
+"right" = mean displacement of map 2's occupied voxels below 2 voxels.
+
+    .venv/bin/python benchmarks/bench_merge.py                       # 0.1, 0.05, 0.025 m
+    .venv/bin/python benchmarks/bench_merge.py --res 0.1 --batch 8    # batch throughput only
     .venv/bin/python benchmarks/bench_merge.py --no-sizes --batch 0 --campus 0.2
+    .venv/bin/python benchmarks/bench_merge.py --no-sizes --batch 0 --guess-grid 0.05
 """
 
 from __future__ import annotations
@@ -155,6 +163,41 @@ def bench_campus(res, repeats):
               f"{statistics.median(times[1:]):.1f} |", flush=True)
 
 
+GUESS_GRID = ([(yaw, 0.0, 0.0, (0.3, 0.2, 0.0)) for yaw in (0.5, 1.7, -2.6, 3.0, -1.0, 2.2)]
+              + [(0.5, 0.1, -0.08, (0.5, 0.3, 0.0)), (1.7, -0.1, 0.05, (1.0, -0.5, 0.2)),
+                 (-2.6, 0.05, 0.1, (1.5, 1.0, 0.0)), (0.0, 0.15, 0.0, (2.0, 0.0, 0.0)),
+                 (2.8, 0.0, -0.12, (0.5, -1.5, 0.3))])  # (yaw, roll, pitch [rad], offset [m])
+
+
+def bench_guess_grid(res, hypotheses):
+    from octomerge_jax.config import MergeConfig
+    from octomerge_jax.io import load, save
+    from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
+    from octomerge_jax.sim import make_two_robot_maps
+
+    cfg = MergeConfig().replace(registration={"refine": "multi", "hypotheses": hypotheses})
+    print(f"\n## refine='multi', hypotheses={hypotheses!r}, from far guesses (lab / office at {res:g} m, from .bt)\n")
+    print("| scene | yaw, roll, pitch [rad] | offset [m] | displacement before -> after [m] | right | s |")
+    print("|---|---|---|---|---|---|")
+    right = total = 0
+    for scene in ("lab", "office"):
+        m1, m2, T = make_two_robot_maps(scene, res)
+        with tempfile.TemporaryDirectory() as d:
+            save(m1, Path(d) / "a.bt")
+            save(m2, Path(d) / "b.bt")
+            m1, m2 = load(Path(d) / "a.bt"), load(Path(d) / "b.bt")
+        for yaw, roll, pitch, off in GUESS_GRID:
+            g = transform_from_xyz_rpy(*off, roll, pitch, yaw) @ T
+            t0 = time.perf_counter()
+            _, rep = merge(m1, m2, g, T_1_2_true=T, config=cfg)
+            ok = rep.displacement < 2 * res
+            right, total = right + ok, total + 1
+            print(f"| {scene} | {yaw:g}, {roll:g}, {pitch:g} | {off[0]:g}, {off[1]:g}, {off[2]:g} | "
+                  f"{rep.displacement_init:.3f} -> {rep.displacement:.3f} | {'yes' if ok else 'no'} | "
+                  f"{time.perf_counter() - t0:.1f} |", flush=True)
+    print(f"\nright: {right} of {total} (each scene's first row includes compilation)")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--res", type=float, nargs="+", default=[0.1, 0.05, 0.025])
@@ -163,6 +206,10 @@ def main(argv=None):
     ap.add_argument("--no-sizes", action="store_true")
     ap.add_argument("--campus", type=float, nargs="*", default=[], metavar="RES",
                     help="outdoor campus pairs at these resolutions [m] (e.g. 0.2; ~1 min to simulate each)")
+    ap.add_argument("--guess-grid", type=float, nargs="*", default=[], metavar="RES",
+                    help="refine='multi' from 22 far guesses on the lab / office pairs at these resolutions [m]")
+    ap.add_argument("--hypotheses", default="both", choices=("both", "correlation", "yaw_grid"),
+                    help="registration.hypotheses for --guess-grid")
     _host_memory.add_flag(ap)
     a = ap.parse_args(argv)
     reuse = _host_memory.apply(a)
@@ -175,6 +222,8 @@ def main(argv=None):
         bench_batch(max(a.res), a.batch)
     for res in a.campus:
         bench_campus(res, a.repeats)
+    for res in a.guess_grid:
+        bench_guess_grid(res, a.hypotheses)
 
 
 if __name__ == "__main__":
