@@ -86,7 +86,8 @@ class RegistrationConfig:
       grid x every translation, scored by the maps' occupancy agreement; for partial overlap
       and guesses whose translation is metres off; the best ``correlation_dense`` of them also
       start the dense alignment, 0 turns that off; the search keeps the guess's roll and
-      pitch) or ``"both"`` (the default). Measured on the simulated lab / office ``.bt`` pairs
+      pitch, and searches a guess tilted by more than 0.02 rad level too, for z-up maps) or
+      ``"both"`` (the default). Measured on the simulated lab / office ``.bt`` pairs
       (0.05 m), guesses off by six yaws (0.5-3 rad, + 0.36 m) and five with 0.05-0.15 rad of
       roll / pitch too (22 rows), right (< 0.1 m): ``"both"`` 22 (0.009-0.037 m, 14-25 s warm
       here), ``"correlation"`` 19 (tilted lab 2 of 5; 8-21 s), ``"yaw_grid"`` 16 (all tilted,

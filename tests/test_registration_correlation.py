@@ -245,3 +245,39 @@ def test_local_candidates_keep_one_row_per_pose_and_mark_poses_without_overlap()
     assert np.asarray(r.candidates.status).tolist()[0] == 2 and int(r.candidates.status[1]) in (0, 1)
     np.testing.assert_allclose(r.candidates.T_target_source[0], far, atol=1e-5)
     assert int(r.best_index) == 1 and r.hypotheses.shape == (2, 4, 4)
+
+
+def test_a_tilted_guess_is_also_searched_level():
+    """``refine="multi"``'s search turns the guess about +z, keeping its roll and pitch; a guess
+    tilted by more than 0.02 rad is also searched level (its yaw and translation kept), for
+    z-up maps whose guess carries a tilt error."""
+    from octomerge_jax.refine import _search_tilts
+
+    flat = transform_from_xyz_rpy(1.0, -2.0, 0.3, 0.0, 0.0, -2.6)
+    (only,) = _search_tilts(flat)
+    np.testing.assert_array_equal(only, flat)
+    assert len(_search_tilts(transform_from_xyz_rpy(0, 0, 0, 0.01, -0.01, 1.0))) == 1  # 0.014 rad
+    tilted = transform_from_xyz_rpy(1.0, -2.0, 0.3, 0.05, 0.1, -2.6)
+    same, level = _search_tilts(tilted)
+    np.testing.assert_array_equal(same, tilted)
+    np.testing.assert_allclose(level, flat, atol=1e-12)
+    reg.check_rigid(level)
+
+
+@pytest.mark.slow
+def test_merge_multi_from_a_tilted_far_guess(tmp_path):
+    """The simulated lab read back from ``.bt``, guesses turned by -2.6 / 2.8 rad, tilted by
+    0.11 / 0.12 rad and 1.6-1.8 m off: the search at the guess's tilt cannot reach the truth
+    and the yaw grid's ICP ends turned by pi (6.6 m off before the level search); with it the
+    merge lands on the truth."""
+    from octomerge_jax.io import load, save
+    from octomerge_jax.sim import make_two_robot_maps
+
+    m1, m2, T = make_two_robot_maps("lab", 0.05)
+    save(m1, tmp_path / "a.bt")
+    save(m2, tmp_path / "b.bt")
+    m1, m2 = load(tmp_path / "a.bt"), load(tmp_path / "b.bt")
+    for off, rpy in (((1.5, 1.0, 0.0), (0.05, 0.1, -2.6)), ((0.5, -1.5, 0.3), (0.0, -0.12, 2.8))):
+        guess = transform_from_xyz_rpy(*off, *rpy) @ T
+        _, rep = merge(m1, m2, guess, refine="multi", T_1_2_true=T)
+        assert rep.displacement_init > 5.0 and rep.displacement < 0.05, (rpy, rep.displacement, rep.icp["local"])
