@@ -359,9 +359,12 @@ def _local_candidates(p1, p2, hypotheses, config: MergeConfig, resolution: float
 def _concat_candidates(a, b):
     """Two ``IcpMultiResult`` as one (``a``'s best stays the best; ``b``'s basins shifted)."""
     cat = lambda x, y: np.concatenate([np.asarray(x), np.asarray(y)])  # noqa: E731
+    # a result made here (not by icp_multi) has no merged runs: each candidate ran its own
+    ran = lambda r: r.candidates.num_iterations if r.num_iterations_run is None else r.num_iterations_run  # noqa: E731
     return dataclasses.replace(a, candidates=jax.tree_util.tree_map(cat, a.candidates, b.candidates),
                                scores=cat(a.scores, b.scores), hypotheses=cat(a.hypotheses, b.hypotheses),
-                               basin=cat(a.basin, np.asarray(b.basin) + np.asarray(a.basin).shape[0]))
+                               basin=cat(a.basin, np.asarray(b.basin) + np.asarray(a.basin).shape[0]),
+                               num_iterations_run=cat(ran(a), ran(b)))
 
 
 def _rank_and_refine(m1, m2, p1, p2, result, near_guess, config: MergeConfig, icp_kwargs: dict,

@@ -169,6 +169,10 @@ def test_merge_multi_default_takes_both_sources():
     loc = rep.icp["local"]
     assert loc["chosen"] == "far" and loc["pick_origin"].startswith("correlation"), loc
     assert loc["plausible_far"], loc
+    r = rep.icp_result  # both sources' candidates in one result, every per-candidate field as long
+    k = np.asarray(r.scores).shape[0]
+    assert np.asarray(r.num_iterations_run).shape == np.asarray(r.basin).shape == (k,)
+    assert np.asarray(r.candidates.num_iterations).shape == (k,)
 
 
 @pytest.mark.parametrize("loss_near, loss_far, plausible, chosen", [
