@@ -15,8 +15,6 @@ reach those sizes (memory and minutes grow accordingly).
 maps would be, merged with each refinement from a guess off by 1 m / 0.08 rad (``multi``: 2 m
 / 1.7 rad), with the mean displacement of map 2's occupied voxels before and after.
 
-    .venv/bin/python benchmarks/bench_merge.py                       # 0.1, 0.05, 0.025 m
-    .venv/bin/python benchmarks/bench_merge.py --res 0.1 --batch 8    # batch throughput only
 ``--guess-grid RES`` merges the simulated lab and office pairs (``make_two_robot_maps``, read
 back from ``.bt``) with ``refine="multi"`` from 11 far guesses each: the truth turned by six
 yaws (0.5-3 rad) + 0.36 m, and five with roll / pitch errors too (0.05-0.15 rad, + 0.5-2 m);
