@@ -159,7 +159,8 @@ def bench_multi(res, ks, repeats):
             print(f"start yaw {yaw} rad: {name} single run (two stages x 50 iterations) ends "
                   f"{e[0]:.4f} rad / {e[1]:.3f} m off")
         cols = " ".join(f"{'12 x ' + n + ' s':>18} {'/ ours':>6}" for n, _ in peers)
-        print(f"{'yaw':>4} {'k':>4} {'mode':>10} | {'1st s':>7} {'steady s':>8} {'hyp/s':>7} {'basins':>6} | "
+        print(f"{'yaw':>4} {'k':>4} {'mode':>10} | {'1st s':>7} {'steady s':>8} {'hyp/s':>7} {'basins':>6} "
+              f"{'iters':>6} | "
               f"{'best rot/m':>17} {'right':>5} | {cols}")
         for i, k in enumerate(ks):
             for sequential in ((True, False) if i == 0 and yaw == 1.7 else (True,)):
@@ -182,7 +183,8 @@ def bench_multi(res, ks, repeats):
                 ratios = " ".join(f"{np.median(v):18.2f} {np.median(v) / t:6.2f}" for v in peer_t.values())
                 mode = "sequential" if sequential else "vmap"
                 basins = len(np.unique(np.asarray(m.basin)))
-                print(f"{yaw:4.1f} {k:4d} {mode:>10} | {first:7.2f} {t:8.2f} {k / t:7.1f} {basins:6d} | "
+                iters = int(np.sum(np.asarray(m.num_iterations_run)))  # every run's own iterations
+                print(f"{yaw:4.1f} {k:4d} {mode:>10} | {first:7.2f} {t:8.2f} {k / t:7.1f} {basins:6d} {iters:6d} | "
                       f"{e[0]:8.4f}/{e[1]:8.4f} {right:5d} | {ratios}", flush=True)
 
 
