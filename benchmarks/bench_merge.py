@@ -125,21 +125,29 @@ def bench_batch(res, n_pairs):
     print(f"\nspeed-up {t_loop / t_batch:.2f}x")
 
 
+def read_back_from_bt(*maps):
+    """The maps written to ``.bt`` files and read back, as a user's maps arrive (maximum
+    likelihood, pruned)."""
+    from octomerge_jax.io import load, save
+
+    with tempfile.TemporaryDirectory() as d:
+        paths = [Path(d) / f"{i}.bt" for i in range(len(maps))]
+        for m, path in zip(maps, paths):
+            save(m, path)
+        return tuple(load(path) for path in paths)
+
+
 CAMPUS_RUNS = (("icp", 1.0, 0.08), ("icp+dense", 1.0, 0.08), ("dense", 1.0, 0.08), ("multi", 2.0, 1.7))
 
 
 def bench_campus(res, repeats):
-    from octomerge_jax.io import load, save
     from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
     from octomerge_jax.sim import make_two_robot_maps
 
     t0 = time.perf_counter()
     m1, m2, T = make_two_robot_maps("campus", res, yaw_2_rad=0.9, offset_2=(40.0, 25.0, 0.3), max_range=30.0)
     t_sim = time.perf_counter() - t0
-    with tempfile.TemporaryDirectory() as d:  # as a user's maps: maximum likelihood, pruned
-        save(m1, Path(d) / "a.bt")
-        save(m2, Path(d) / "b.bt")
-        m1, m2 = load(Path(d) / "a.bt"), load(Path(d) / "b.bt")
+    m1, m2 = read_back_from_bt(m1, m2)
     print(f"\n## Outdoor campus at {res:g} m ({m1.num_leaves:,}+{m2.num_leaves:,} leaves from .bt, "
           f"simulated in {t_sim:.0f} s)\n")
     print("| refine | guess off (m, rad) | displacement before -> after [m] | eps_r | eps_t | report | "
@@ -169,7 +177,6 @@ GUESS_GRID = ([(yaw, 0.0, 0.0, (0.3, 0.2, 0.0)) for yaw in (0.5, 1.7, -2.6, 3.0,
 
 def bench_guess_grid(res, hypotheses):
     from octomerge_jax.config import MergeConfig
-    from octomerge_jax.io import load, save
     from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
     from octomerge_jax.sim import make_two_robot_maps
 
@@ -180,10 +187,7 @@ def bench_guess_grid(res, hypotheses):
     right = total = 0
     for scene in ("lab", "office"):
         m1, m2, T = make_two_robot_maps(scene, res)
-        with tempfile.TemporaryDirectory() as d:
-            save(m1, Path(d) / "a.bt")
-            save(m2, Path(d) / "b.bt")
-            m1, m2 = load(Path(d) / "a.bt"), load(Path(d) / "b.bt")
+        m1, m2 = read_back_from_bt(m1, m2)
         for yaw, roll, pitch, off in GUESS_GRID:
             g = transform_from_xyz_rpy(*off, roll, pitch, yaw) @ T
             t0 = time.perf_counter()
