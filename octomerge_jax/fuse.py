@@ -25,9 +25,11 @@ How, on flat Morton intervals (a leaf at depth ``d`` covers ``[code, code + 8^(1
    its slot, every non-empty gap its interval to its first slot, and each gap slot finds its
    gap by a cumulative max and computes its cell: the common refinement comes out already
    sorted. Gap cells are few (0-7.5 % of the refinement measured, most with .bt inputs): when
-   no leaf has one, their counts and layout are skipped altogether (``lax.cond``); otherwise on
-   the host they are laid out from a compact list of ``max(capacity / 8, 512)`` rows (re-run
-   with room for all if there are more) instead of per output slot: 1.2-1.6x faster.
+   no leaf has one, their counts and layout are skipped altogether (``lax.cond``); otherwise
+   the few leaves with a gap are found from one byte of flags per leaf (a prefix count and a
+   binary search), and only they compute their gaps, on a list of ``max(capacity / 8, 512)``
+   rows on the host (re-run with room for all if there are more); their cell counts are
+   scattered back for the prefix sum, and each gap cell finds its leaf by a cumulative max.
    Values are combined per rule, clamped, and pruned maximally in one pass
    (``tree.prune``: a node collapses iff its interval lies in one run of contiguous,
    equal-valued leaves).
@@ -346,7 +348,8 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
 
     ``le_b[i]`` = number of B leaves with code <= A's code i. A leaf emits, in order: the gap
     before it inside a coarser B leaf, itself (unless split), the gap after it (if it is the
-    last A leaf inside that B leaf). All arrays ``(Ca,)``.
+    last A leaf inside that B leaf). Arrays ``(Ca,)``; ``has_gap`` flags the leaves with a
+    nonempty gap, whose gaps ``gap_at(i)`` computes for a few leaf indices ``i``.
     """
     ca, cb = A.capacity, B.capacity
     na, nb = A.count, B.count
@@ -372,22 +375,47 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     va = A.log_odds
     both = _combine(rule, va, bv, w_a, w_b) if first else _combine(rule, bv, va, w_b, w_a)
     self_val = jnp.clip(jnp.where(cov, both, _single(rule, va, w_a)), lo_c, hi_c)
-    gap_val = jnp.clip(_single(rule, bv, w_b), lo_c, hi_c)
 
-    # gaps inside B's coarser leaf (cells known only to B): before A's leaf, and after it if
-    # it is the last A leaf inside; empty ([x, x)) unless A is strictly inside a B leaf.
-    peh, pel = _shift_down(aeh, 0), _shift_down(ael, 0)
-    use_prev = (ia > 0) & _less(bh, bl, peh, pel)
-    gbh = jnp.where(inside_b, jnp.where(use_prev, peh, bh), ah)
-    gbl = jnp.where(inside_b, jnp.where(use_prev, pel, bl), al)
-    last = (ia + 1 >= na) | ~_less(_shift_up(ah, _SENT), _shift_up(al, 0), beh, bel)
-    gah = jnp.where(inside_b & last, beh, aeh)
-    gal = jnp.where(inside_b & last, bel, ael)
+    def gaps(ah, al, aeh, ael, peh, pel, nh, nl, bh, bl, beh, bel, i):
+        """The gaps inside B's coarser leaf (cells known only to B) before A's leaf ``i``
+        and, if it is the last A leaf inside, after it: ``(gb, a, ae, ga)`` word pairs; each
+        is empty (``[x, x)``) unless A is strictly inside B's leaf. ``p``: the previous A
+        leaf's end, ``n``: the next A leaf's start."""
+        use_prev = (i > 0) & _less(bh, bl, peh, pel)
+        gbh, gbl = jnp.where(use_prev, peh, bh), jnp.where(use_prev, pel, bl)
+        last = (i + 1 >= na) | ~_less(nh, nl, beh, bel)
+        return gbh, gbl, ah, al, aeh, ael, jnp.where(last, beh, aeh), jnp.where(last, bel, ael)
+
+    # which leaves have a nonempty gap, from flags on the boundaries between neighbours (word
+    # arrays shifted by one cost a pass each; one byte per boundary is shifted instead):
+    # leaf k+1 is inside the B leaf that holds leaf k's start iff its last B leaf is the same
+    # (``same``) and it is inside a B leaf; it starts where leaf k ends (``contig``).
+    same = le_b[1:] == le_b[:-1]
+    contig = (ah[1:] == aeh[:-1]) & (al[1:] == ael[:-1])
+    link = _materialize(gate, lambda: (same.astype(jnp.int8) | jnp.left_shift(contig.astype(jnp.int8), 1)
+                                       | jnp.left_shift((same & inside_b[1:]).astype(jnp.int8), 2)))
+    zero = jnp.zeros((1,), jnp.int8)
+    prev, nxt = _materialize(gate, lambda: (jnp.concatenate([zero, link]), jnp.concatenate([link, zero])))
+    # before: from the previous leaf's end if it lies in the same B leaf, else from B's start
+    gap_before = jnp.where((prev & 1) == 1, (prev & 2) == 0, (bh != ah) | (bl != al))
+    gap_after = ((nxt & 4) == 0) & ((beh != aeh) | (bel != ael))  # A's last leaf in B's
+    has_gap = inside_b & (gap_before | gap_after)
+
+    def gap_at(i):
+        """``(gb_hi, gb_lo, a_hi, a_lo, ae_hi, ae_lo, ga_hi, ga_lo, value)`` of leaves ``i``
+        (any shape, inside ``[0, Ca)``, leaves with ``has_gap``), from a few gathers."""
+        ip, inext = jnp.maximum(i - 1, 0), jnp.minimum(i + 1, ca - 1)
+        jj = jnp.clip(le_b[i] - 1, 0, cb - 1)
+        a_h, a_l, b_h, b_l = A.code[i, 0], A.code[i, 1], B.code[jj, 0], B.code[jj, 1]
+        ae = _end(a_h, a_l, A.depth[i])
+        pe = _end(A.code[ip, 0], A.code[ip, 1], A.depth[ip])
+        be = _end(b_h, b_l, B.depth[jj])
+        out = gaps(a_h, a_l, *ae, *pe, A.code[inext, 0], A.code[inext, 1], b_h, b_l, *be, i)
+        return out + (jnp.clip(_single(rule, B.log_odds[jj], w_b), lo_c, hi_c),)
+
     return dict(
         valid=valid, self_emit=self_emit, self_row=(A.code, A.depth, self_val),
-        gap_before=(gbh, gbl, ah, al, gap_val), gap_after=(aeh, ael, gah, gal, gap_val),
-        # a gap is empty unless A is strictly inside B's leaf (else gb = a and ga = ae)
-        any_gap=jnp.any(inside_b & (_less(gbh, gbl, ah, al) | _less(aeh, ael, gah, gal))),
+        has_gap=has_gap, gap_at=gap_at, any_gap=jnp.any(has_gap),
         stats=dict(equal=jnp.sum(equal & first), split=jnp.sum(split),
                    both=jnp.sum(self_emit & cov), new_self=jnp.sum(self_emit & ~cov)),
     )
@@ -396,35 +424,101 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
 def _lay_out(sides, before, capacity: int, gap_capacity, params, resolution, tree_depth,
              with_gaps: bool):
     """The common refinement of the pair kernel's two sides (unpruned): every leaf's cell
-    count (its gaps' cells, in closed form, only ``with_gaps``), prefix sums in merged order,
-    then ``_emit``. ``before[k]``: per leaf of side ``k``, the other side's leaves before it
-    (ranks). Returns ``(map, total cells, gap cells, gap cells of side 0)``."""
-    gate = before[0][0] >= 0  # a traced True (ranks are >= 0), for _materialize
-    plans, counts = [], []
-    for s in sides:
-        if with_gaps:
-            nb, na = _materialize(gate, lambda: tuple(jnp.where(s["valid"], _gap_plan(*s[g][:4]), 0)
-                                                      for g in ("gap_before", "gap_after")))
-        else:
-            nb = na = jnp.zeros_like(s["valid"], jnp.int32)
-        plans.append((nb, na))
-        counts.append(nb + s["self_emit"].astype(jnp.int32) + na)
+    count, prefix sums in merged order, the leaves' own cells scattered to their slots and,
+    ``with_gaps``, the gap cells (``_pair_gaps``). ``before[k]``: per leaf of side ``k``, the
+    other side's leaves before it (ranks). ``gap_capacity``: rows of the lists of leaves
+    with gaps and of gap cells (``None``: room for all). Returns ``(map, total cells, gap
+    cells needed, gap cells of side 0)``; the total is a lower bound when the gap list
+    overflowed (gap cells needed > ``gap_capacity``)."""
+    sizes = [s["valid"].shape[0] for s in sides]
+    if with_gaps:
+        g = _gap_entries(sides, gap_capacity or sum(sizes))
+        nbs, nas = [], []
+        for k, (s, n) in enumerate(zip(sides, sizes)):
+            at = jnp.where(g["ok"] & (g["side"] == k), g["i"], n)
+            packed = jnp.zeros((n,), jnp.int32).at[at].set(g["nb"] | jnp.left_shift(g["na"], 16),
+                                                           mode="drop")
+            nbs.append(packed & 0xFFFF)
+            nas.append(jnp.right_shift(packed, 16))
+    else:
+        nbs = nas = [jnp.int32(0)] * 2
+    counts = [nb + s["self_emit"].astype(jnp.int32) + na for s, nb, na in zip(sides, nbs, nas)]
     # merged order: m1 leaf i is preceded by the m2 leaves with code < its code; m2 leaf j
     # by the m1 leaves with code <= its code (ties: m1 first; one of a tied pair emits nothing
     # or the pair is equal and only m1 emits).
     p = [_cumsum(c) for c in counts]
     total = (p[0][-1] + p[1][-1]).astype(jnp.int32)
-    selfs, gaps = [], []
-    for k, (s, (nb, na)) in enumerate(zip(sides, plans)):
+    selfs, offs = [], []
+    for k, (s, nb) in enumerate(zip(sides, nbs)):
         off = p[k] - counts[k] + _excl_at(p[1 - k], before[k])
-        self_slot = off + nb
-        selfs.append((jnp.where(s["self_emit"], self_slot, capacity),) + s["self_row"])
-        if with_gaps:
-            gaps.append((off, nb) + s["gap_before"])
-            gaps.append((self_slot + s["self_emit"].astype(jnp.int32), na) + s["gap_after"])
-    n_gap = sum(jnp.sum(g[1]) for g in gaps) + jnp.int32(0)
-    out = _emit(capacity, total, selfs, gaps, params, resolution, tree_depth, gap_capacity)
-    return out, total, n_gap.astype(jnp.int32), jnp.sum(plans[0][0] + plans[0][1]).astype(jnp.int32)
+        offs.append(off)
+        selfs.append((jnp.where(s["self_emit"], off + nb, capacity),) + s["self_row"])
+    code, depth, val = tree._padding(capacity)
+    if not with_gaps:
+        out = _put_selfs(code, depth, val, selfs, total, capacity, params, resolution, tree_depth)
+        return out, total, jnp.int32(0), jnp.int32(0)
+    code, depth, val, n_gap = _pair_gap_cells(g, sides, offs, code, depth, val, capacity,
+                                              gap_capacity or capacity)
+    out = _put_selfs(code, depth, val, selfs, total, capacity, params, resolution, tree_depth)
+    new = jnp.sum(jnp.where(g["side"] == 0, g["nb"] + g["na"], 0)).astype(jnp.int32)
+    return out, total + g["missed"], n_gap, new
+
+
+def _gap_entries(sides, rows: int):
+    """The leaves of both sides with a nonempty gap, in order (side 0's first), as a list of
+    ``rows``: the ``r``-th found by a binary search in the prefix count of ``has_gap`` (no
+    pass over the leaves beyond that count). Per row: ``side``, leaf ``i``, ``ok`` (a leaf
+    is there), the gaps (``gap_at``) and their cell counts ``nb``, ``na`` (0 unless ``ok``);
+    ``missed``: leaves with gaps past the list (each has at least one gap cell)."""
+    ca = sides[0]["valid"].shape[0]
+    flags = jnp.concatenate([s["has_gap"] for s in sides]).astype(jnp.int32)
+    found = _cumsum(flags)
+    r = jnp.arange(rows, dtype=jnp.int32)
+    e = jnp.searchsorted(found, r, side="right", method="scan").astype(jnp.int32)
+    ok = r < found[-1]
+    side = (e >= ca).astype(jnp.int32)
+    i = jnp.where(side == 1, e - ca, e)
+    sizes = [s["valid"].shape[0] for s in sides]
+    per_side = [s["gap_at"](jnp.clip(i, 0, n - 1)) for s, n in zip(sides, sizes)]
+    gap = tuple(jnp.where(side == 1, b, a) for a, b in zip(*per_side))
+    nb = jnp.where(ok, _gap_plan(*gap[0:4]), 0)
+    na = jnp.where(ok, _gap_plan(*gap[4:8]), 0)
+    return dict(side=side, i=i, ok=ok, gap=gap, nb=nb, na=na,
+                missed=jnp.maximum(found[-1] - rows, 0).astype(jnp.int32))
+
+
+def _pair_gap_cells(g, sides, offs, code, depth, val, capacity: int, rows: int):
+    """Write the gap cells of the leaves in ``g`` (``_gap_entries``) at their slots: the gap
+    before leaf ``i`` from its first slot ``offs[side][i]``, the gap after it after its own
+    cell. Each of ``rows`` gap cells finds its leaf by a cumulative max over the leaves'
+    first cells and computes its cell in closed form. Returns ``(code, depth, val, gap cells
+    needed)``."""
+    ent_rows = g["side"].shape[0]
+    side, i, nb, na = g["side"], g["i"], g["nb"], g["na"]
+    sizes = [s["valid"].shape[0] for s in sides]
+    at = [jnp.clip(i, 0, n - 1) for n in sizes]
+    off = jnp.where(side == 1, offs[1][at[1]], offs[0][at[0]])
+    emits = jnp.where(side == 1, sides[1]["self_emit"][at[1]], sides[0]["self_emit"][at[0]])
+    n = nb + na
+    first = _cumsum(n) - n  # the leaf's first cell in the gap-cell list
+    n_cells = first[-1] + n[-1]
+    q = jnp.arange(rows, dtype=jnp.int32)
+    mark = jnp.zeros((rows,), jnp.int32).at[jnp.where(n > 0, first, rows)].set(
+        jnp.arange(ent_rows, dtype=jnp.int32) + 1, mode="drop")
+    e = jnp.maximum(_cummax(mark) - 1, 0)  # the leaf of each gap cell
+    t = q - first[e]
+    nb_e = nb[e]
+    bef = t < nb_e
+    tt = jnp.where(bef, t, t - nb_e)
+    gap = g["gap"]
+    sh, sl, eh, el = (jnp.where(bef, gap[k][e], gap[k + 4][e]) for k in range(4))
+    ch, cl, cd = _gap_cell(sh, sl, eh, el, tt)
+    slot = off[e] + jnp.where(bef, t, nb_e + emits[e].astype(jnp.int32) + tt)
+    dst = jnp.where(q < n_cells, slot, capacity)
+    code = code.at[dst].set(jnp.stack([ch, cl], -1), mode="drop")
+    depth = depth.at[dst].set(cd, mode="drop")
+    val = val.at[dst].set(gap[8][e], mode="drop")
+    return code, depth, val, (n_cells + g["missed"]).astype(jnp.int32)
 
 
 def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth,
@@ -522,7 +616,7 @@ def _excl_at(incl, idx):
 @functools.partial(jax.jit, static_argnames=("capacity", "do_prune", "gap_capacity"))
 def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, do_prune: bool,
                gap_capacity: int | None = None):
-    """The pair kernel: ``(map, FuseReport, gap cells)``; ``gap_capacity``: see ``_emit``."""
+    """The pair kernel: ``(map, FuseReport, gap cells)``; ``gap_capacity``: see ``_lay_out``."""
     h1, l1, h2, l2 = m1.code[:, 0], m1.code[:, 1], m2.code[:, 0], m2.code[:, 1]
     lt2, le1 = morton.merge_ranks(h1, l1, h2, l2)  # #m2 < m1_i, #m1 <= m2_j
     k = jnp.clip(lt2, 0, m2.capacity - 1)
@@ -578,9 +672,12 @@ def _sized_gaps(kernel, cap: int, traced: bool, gap_capacity):
     if gap_capacity is None and not traced:
         gap_capacity = default_gap_capacity(cap)
     out, rep, n_gap = kernel(cap, gap_capacity)
-    if not traced and gap_capacity is not None and int(n_gap) > gap_capacity:
+    # the count is exact when the list held every leaf with gaps, else a lower bound (the
+    # pair kernel), so a second re-run may be needed
+    while not traced and gap_capacity is not None and int(n_gap) > gap_capacity:
         more = bucket_capacity(int(n_gap))
-        out, rep, _ = kernel(cap, more if more < cap else None)
+        gap_capacity = more if more < cap else None
+        out, rep, n_gap = kernel(cap, gap_capacity)
     return out, rep
 
 
@@ -636,10 +733,11 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
         the clamped common refinement is returned (sorted, disjoint, not pruned).
       return_report: also return a ``FuseReport``.
       gap_capacity: static room for *gap cells* (parts of a split leaf that the finer map
-        does not know, thesis case 1 inside cases 3 / 4; rare in practice), laid out from a
-        compact list instead of per output slot. ``None``: on the host ``max(capacity / 8,
-        512)``, re-run with room for all when there are more; under ``jit``/``vmap`` every
-        slot (never short). A value that proves too small under ``jit`` sets ``overflow``.
+        does not know, thesis case 1 inside cases 3 / 4; rare in practice), and for the
+        leaves that have them. ``None``: on the host ``max(capacity / 8, 512)``, re-run with
+        room for all when there are more; under ``jit``/``vmap`` room for all (every leaf,
+        ``capacity`` cells: never short, slower). A value that proves too small under ``jit``
+        sets ``overflow`` (``refined_cells`` is then a lower bound).
 
     Returns the fused ``OccupancyMap`` (capacity ``capacity``), or ``(map, report)``.
     Raises ``ValueError`` (host) for different resolutions, an unknown rule, or an overflow
