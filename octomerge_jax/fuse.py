@@ -618,7 +618,7 @@ def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, 
                gap_capacity: int | None = None):
     """The pair kernel: ``(map, FuseReport, gap cells)``; ``gap_capacity``: see ``_lay_out``."""
     h1, l1, h2, l2 = m1.code[:, 0], m1.code[:, 1], m2.code[:, 0], m2.code[:, 1]
-    lt2, le1 = morton.merge_ranks(h1, l1, h2, l2)  # #m2 < m1_i, #m1 <= m2_j
+    lt2, le1 = morton.merge_ranks(h1, l1, h2, l2, (m1.count, m2.count))  # #m2 < m1_i, #m1 <= m2_j
     k = jnp.clip(lt2, 0, m2.capacity - 1)
     le2 = lt2 + ((lt2 < m2.count) & (h2[k] == h1) & (l2[k] == l1)).astype(jnp.int32)
     lo_c, hi_c = m1.params.clamp_min_log_odds, m1.params.clamp_max_log_odds

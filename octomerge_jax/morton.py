@@ -353,7 +353,7 @@ def _bsearch(lo, hi, pred, steps: int):
 _CHUNK = 128  # merge-path chunk: each chunk is merged sequentially, all chunks at once
 
 
-def _merge_scan(ah, al, bh, bl):
+def _merge_scan(ah, al, bh, bl, counts=None):
     """Merge path of two sorted code lists ``a (Ca,)``, ``b (Cb,)`` (word columns; ties:
     ``a`` first): ``(key, rank)``, ``(_CHUNK, chunks)`` each: at step ``t`` chunk ``c`` takes
     merged element ``c * _CHUNK + t``, ``key`` = its index in ``a``, or ``~index`` in ``b``
@@ -362,21 +362,32 @@ def _merge_scan(ah, al, bh, bl):
     The merged sequence is cut into chunks of ``_CHUNK``; where each cut falls in ``a`` and
     ``b`` is one binary search per cut (few). Then all chunks are merged at once, one
     element per chunk and step. ``O(Ca + Cb)`` work, no binary search per element.
+
+    ``counts=(na, nb)`` (traced): only the first ``na`` / ``nb`` rows are merged (the rest is
+    padding, sorted last); the chunks are then ``ceil((na + nb) / chunks)`` long and the
+    steps past that are not run (a ``while`` loop), so the work follows the valid rows, not
+    the capacities. Elements not merged have key ``~Cb`` (none).
     """
     ca, cb = ah.shape[0], bh.shape[0]
     n = ca + cb
-    d = jnp.minimum(jnp.arange(-(-n // _CHUNK) + 1, dtype=jnp.int32) * _CHUNK, n)
+    chunks = -(-n // _CHUNK)
+    if counts is None:
+        na, nb, length = ca, cb, _CHUNK
+    else:
+        na, nb = (jnp.asarray(c, jnp.int32) for c in counts)
+        length = -(-(na + nb) // chunks)  # <= _CHUNK
+    d = jnp.minimum(jnp.arange(chunks + 1, dtype=jnp.int32) * length, na + nb)
 
     def a_before_cut(i):  # a_i is among the first d merged iff a_i <= b[d - i - 1]
         jb = d - i - 1
         jc, ic = jnp.clip(jb, 0, cb - 1), jnp.clip(i, 0, ca - 1)
-        return (jb >= cb) | ((jb >= 0) & ~_less(bh[jc], bl[jc], ah[ic], al[ic]))
+        return (jb >= nb) | ((jb >= 0) & ~_less(bh[jc], bl[jc], ah[ic], al[ic]))
 
-    x = _bsearch(jnp.maximum(d - cb, 0), jnp.minimum(d, ca), a_before_cut, int(ca).bit_length())
+    x = _bsearch(jnp.maximum(d - nb, 0), jnp.minimum(d, na), a_before_cut, int(ca).bit_length())
     y = d - x  # cut k: x[k] a's and y[k] b's precede it
     a, b = jnp.stack([ah, al], -1), jnp.stack([bh, bl], -1)
 
-    def step(state, _):
+    def step(state):
         i, j = state  # next a and b of each chunk
         ai, bj = a[jnp.minimum(i, ca - 1)], b[jnp.minimum(j, cb - 1)]
         take_a = (i < x[1:]) & ((j >= y[1:]) | ~_less(bj[:, 0], bj[:, 1], ai[:, 0], ai[:, 1]))
@@ -384,20 +395,38 @@ def _merge_scan(ah, al, bh, bl):
         key = jnp.where(take_a, i, ~jnp.where(take_b, j, cb))
         return (i + take_a.astype(jnp.int32), j + take_b.astype(jnp.int32)), (key, jnp.where(take_a, j, i))
 
-    _, (key, rank) = jax.lax.scan(step, (x[:-1], y[:-1]), None, length=_CHUNK)
+    if counts is None:
+        _, (key, rank) = jax.lax.scan(lambda s, _: step(s), (x[:-1], y[:-1]), None, length=_CHUNK)
+        return key, rank
+
+    def body(carry):
+        t, state, key, rank = carry
+        state, (k, r) = step(state)
+        return (t + 1, state, jax.lax.dynamic_update_index_in_dim(key, k, t, 0),
+                jax.lax.dynamic_update_index_in_dim(rank, r, t, 0))
+
+    empty = jnp.full((_CHUNK, chunks), ~cb, jnp.int32)
+    _, _, key, rank = jax.lax.while_loop(lambda c: c[0] < length, body,
+                                         (jnp.int32(0), (x[:-1], y[:-1]), empty, jnp.zeros_like(empty)))
     return key, rank
 
 
-def merge_ranks(ah, al, bh, bl):
+def merge_ranks(ah, al, bh, bl, counts=None):
     """Merge two sorted code lists ``a (Ca,)``, ``b (Cb,)`` (word columns; ties: ``a`` first):
     returns ``(#b < a_i, #a <= b_j)``, each element's rank in the other list.
 
     Merge path, no sort (``_merge_scan``); one scatter per list puts the ranks in place.
+    ``counts=(na, nb)``: the valid rows (padding ``(SENTINEL_HI, 0)`` after them); only those
+    are merged, and padding rows get the ranks a full merge gives them (``nb``, ``Ca``).
     """
     ca, cb = ah.shape[0], bh.shape[0]
-    key, rank = (x.reshape(-1) for x in _merge_scan(ah, al, bh, bl))
+    key, rank = (x.reshape(-1) for x in _merge_scan(ah, al, bh, bl, counts))
     lt_a = jnp.zeros((ca,), jnp.int32).at[jnp.where(key >= 0, key, ca)].set(rank, mode="drop")
     le_b = jnp.zeros((cb,), jnp.int32).at[jnp.where(key < 0, ~key, cb)].set(rank, mode="drop")
+    if counts is not None:
+        na, nb = counts
+        lt_a = jnp.where(jnp.arange(ca) < na, lt_a, nb)
+        le_b = jnp.where(jnp.arange(cb) < nb, le_b, ca)
     return lt_a, le_b
 
 

@@ -1,3 +1,4 @@
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -107,6 +108,11 @@ def test_merge_sorted_and_ranks_match_a_stable_sort(ca, cb):
     ka = np.sort(key(ah, al))
     np.testing.assert_array_equal(lt_a, np.searchsorted(kb, key(ah, al), side="left"))
     np.testing.assert_array_equal(le_b, np.searchsorted(ka, key(bh, bl), side="right"))
+    # with the valid counts only those rows are merged (shorter chunks): the same ranks
+    counts = (max(ca - 3, 1), max(cb - 2, 1))
+    ranks = jax.jit(lambda *x: morton.merge_ranks(*x[:4], x[4:]))(ah, al, bh, bl, *counts)
+    for g, want in zip(ranks, (lt_a, le_b)):
+        np.testing.assert_array_equal(np.asarray(g), want)
 
 
 def test_leaf_cell_codes_are_the_cells_of_each_leaf():
