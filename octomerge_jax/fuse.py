@@ -776,6 +776,10 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
 
     On the host the boundary lists are sized to the maps' leaves and gaps (rounded to an
     eighth of an octave); under ``jit`` / ``vmap`` to ``2 x capacity`` (always enough).
+
+    Speed on 2 CPU cores (``benchmarks/bench_fuse.py``): 1.2-1.5x faster than the fold for
+    m = 4 / 8 maps that each overlap their neighbours; when all m maps cover the same volume,
+    the fold of ``fuse`` is faster (``fuse_many`` takes 1.4-1.75x its time at m = 4 / 8).
     """
     maps = list(maps)
     if not maps:
