@@ -425,11 +425,11 @@ def _lay_out(sides, before, capacity: int, gap_capacity, params, resolution, tre
              with_gaps: bool):
     """The common refinement of the pair kernel's two sides (unpruned): every leaf's cell
     count, prefix sums in merged order, the leaves' own cells scattered to their slots and,
-    ``with_gaps``, the gap cells (``_pair_gaps``). ``before[k]``: per leaf of side ``k``, the
-    other side's leaves before it (ranks). ``gap_capacity``: rows of the lists of leaves
-    with gaps and of gap cells (``None``: room for all). Returns ``(map, total cells, gap
-    cells needed, gap cells of side 0)``; the total is a lower bound when the gap list
-    overflowed (gap cells needed > ``gap_capacity``)."""
+    ``with_gaps``, the gap cells (``_gap_entries``, ``_pair_gap_cells``). ``before[k]``: per
+    leaf of side ``k``, the other side's leaves before it (ranks). ``gap_capacity``: rows of
+    the lists of leaves with gaps and of gap cells (``None``: room for all). Returns ``(map,
+    total cells, gap cells needed, gap cells of side 0)``; the total is a lower bound when
+    the gap list overflowed (gap cells needed > ``gap_capacity``)."""
     sizes = [s["valid"].shape[0] for s in sides]
     if with_gaps:
         g = _gap_entries(sides, gap_capacity or sum(sizes))
