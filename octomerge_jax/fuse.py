@@ -466,15 +466,29 @@ def _lay_out(sides, before, capacity: int, gap_capacity, params, resolution, tre
 
 def _gap_entries(sides, rows: int):
     """The leaves of both sides with a nonempty gap, in order (side 0's first), as a list of
-    ``rows``: the ``r``-th found by a binary search in the prefix count of ``has_gap`` (no
-    pass over the leaves beyond that count). Per row: ``side``, leaf ``i``, ``ok`` (a leaf
+    ``rows``: the ``r``-th found by a binary search in the prefix count of ``has_gap`` over
+    blocks of 32 leaves, then by popcounts in its block's bit mask. Per row: ``side``, leaf ``i``, ``ok`` (a leaf
     is there), the gaps (``gap_at``) and their cell counts ``nb``, ``na`` (0 unless ``ok``);
     ``missed``: leaves with gaps past the list (each has at least one gap cell)."""
     ca = sides[0]["valid"].shape[0]
-    flags = jnp.concatenate([s["has_gap"] for s in sides]).astype(jnp.int32)
-    found = _cumsum(flags)
+    flags = jnp.concatenate([s["has_gap"] for s in sides])
+    pad = -flags.shape[0] % 32
+    flags = jnp.concatenate([flags, jnp.zeros((pad,), bool)]) if pad else flags
+    # the flags as 32-bit masks: the block of the r-th flag by a binary search in the
+    # blocks' prefix count (n / 32 entries), then its bit by popcounts of the mask
+    bit = jnp.left_shift(jnp.uint32(1), jnp.arange(32, dtype=jnp.uint32))
+    mask = jnp.sum(jnp.where(flags.reshape(-1, 32), bit, jnp.uint32(0)), axis=1, dtype=jnp.uint32)
+    found = _cumsum(jax.lax.population_count(mask).astype(jnp.int32))
     r = jnp.arange(rows, dtype=jnp.int32)
-    e = jnp.searchsorted(found, r, side="right", method="scan").astype(jnp.int32)
+    blk = jnp.minimum(jnp.searchsorted(found, r, side="right", method="scan"), found.shape[0] - 1)
+    k = (r - _excl_at(found, blk)).astype(jnp.uint32)  # the flag's rank in its block
+    w = mask[blk]
+    pos = jnp.zeros_like(k)
+    for step in (16, 8, 4, 2, 1):  # the largest p with popcount(w below bit p) <= k
+        m = pos + step
+        below = jax.lax.population_count(w & (jnp.left_shift(jnp.uint32(1), m) - 1))
+        pos = jnp.where(below <= k, m, pos)
+    e = (blk * 32 + pos.astype(jnp.int32)).astype(jnp.int32)
     ok = r < found[-1]
     side = (e >= ca).astype(jnp.int32)
     i = jnp.where(side == 1, e - ca, e)

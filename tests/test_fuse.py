@@ -322,6 +322,9 @@ def test_padding_invariance():
     assert_same_leaves(b, (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
     c = F.fuse(m1, m2)  # host-planned capacity
     assert_same_leaves(c, (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
+    # capacities that are not multiples of 32 (the gap flags are searched in 32-bit masks)
+    d = F.fuse(m1.with_capacity(m1.num_leaves + 3), m2.with_capacity(m2.num_leaves + 17), capacity=CAP_OUT)
+    assert_same_leaves(d, (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
 
 
 def test_no_recompile_within_bucket():
