@@ -376,16 +376,6 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     both = _combine(rule, va, bv, w_a, w_b) if first else _combine(rule, bv, va, w_b, w_a)
     self_val = jnp.clip(jnp.where(cov, both, _single(rule, va, w_a)), lo_c, hi_c)
 
-    def gaps(ah, al, aeh, ael, peh, pel, nh, nl, bh, bl, beh, bel, i):
-        """The gaps inside B's coarser leaf (cells known only to B) before A's leaf ``i``
-        and, if it is the last A leaf inside, after it: ``(gb, a, ae, ga)`` word pairs; each
-        is empty (``[x, x)``) unless A is strictly inside B's leaf. ``p``: the previous A
-        leaf's end, ``n``: the next A leaf's start."""
-        use_prev = (i > 0) & _less(bh, bl, peh, pel)
-        gbh, gbl = jnp.where(use_prev, peh, bh), jnp.where(use_prev, pel, bl)
-        last = (i + 1 >= na) | ~_less(nh, nl, beh, bel)
-        return gbh, gbl, ah, al, aeh, ael, jnp.where(last, beh, aeh), jnp.where(last, bel, ael)
-
     # which leaves have a nonempty gap, from flags on the boundaries between neighbours (word
     # arrays shifted by one cost a pass each; one byte per boundary is shifted instead):
     # leaf k+1 is inside the B leaf that holds leaf k's start iff its last B leaf is the same
@@ -402,16 +392,22 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     has_gap = inside_b & (gap_before | gap_after)
 
     def gap_at(i):
-        """``(gb_hi, gb_lo, a_hi, a_lo, ae_hi, ae_lo, ga_hi, ga_lo, value)`` of leaves ``i``
-        (any shape, inside ``[0, Ca)``, leaves with ``has_gap``), from a few gathers."""
+        """The gaps inside B's coarser leaf (cells known only to B) before A's leaf ``i`` and,
+        if it is the last A leaf inside, after it, for leaves ``i`` (any shape, inside ``[0,
+        Ca)``, leaves with ``has_gap``), from a few gathers: ``(gb_hi, gb_lo, a_hi, a_lo,
+        ae_hi, ae_lo, ga_hi, ga_lo, value)``; a gap is empty (``[x, x)``) unless A is
+        strictly inside B's leaf."""
         ip, inext = jnp.maximum(i - 1, 0), jnp.minimum(i + 1, ca - 1)
         jj = jnp.clip(le_b[i] - 1, 0, cb - 1)
         a_h, a_l, b_h, b_l = A.code[i, 0], A.code[i, 1], B.code[jj, 0], B.code[jj, 1]
-        ae = _end(a_h, a_l, A.depth[i])
-        pe = _end(A.code[ip, 0], A.code[ip, 1], A.depth[ip])
-        be = _end(b_h, b_l, B.depth[jj])
-        out = gaps(a_h, a_l, *ae, *pe, A.code[inext, 0], A.code[inext, 1], b_h, b_l, *be, i)
-        return out + (jnp.clip(_single(rule, B.log_odds[jj], w_b), lo_c, hi_c),)
+        ae_h, ae_l = _end(a_h, a_l, A.depth[i])
+        pe_h, pe_l = _end(A.code[ip, 0], A.code[ip, 1], A.depth[ip])  # the previous leaf's end
+        be_h, be_l = _end(b_h, b_l, B.depth[jj])
+        use_prev = (i > 0) & _less(b_h, b_l, pe_h, pe_l)  # it lies in B's leaf too
+        last = (i + 1 >= na) | ~_less(A.code[inext, 0], A.code[inext, 1], be_h, be_l)
+        return (jnp.where(use_prev, pe_h, b_h), jnp.where(use_prev, pe_l, b_l), a_h, a_l,
+                ae_h, ae_l, jnp.where(last, be_h, ae_h), jnp.where(last, be_l, ae_l),
+                jnp.clip(_single(rule, B.log_odds[jj], w_b), lo_c, hi_c))
 
     return dict(
         valid=valid, self_emit=self_emit, self_row=(A.code, A.depth, self_val),
@@ -467,9 +463,10 @@ def _lay_out(sides, before, capacity: int, gap_capacity, params, resolution, tre
 def _gap_entries(sides, rows: int):
     """The leaves of both sides with a nonempty gap, in order (side 0's first), as a list of
     ``rows``: the ``r``-th found by a binary search in the prefix count of ``has_gap`` over
-    blocks of 32 leaves, then by popcounts in its block's bit mask. Per row: ``side``, leaf ``i``, ``ok`` (a leaf
-    is there), the gaps (``gap_at``) and their cell counts ``nb``, ``na`` (0 unless ``ok``);
-    ``missed``: leaves with gaps past the list (each has at least one gap cell)."""
+    blocks of 32 leaves, then by popcounts in its block's bit mask. Per row: ``side``, leaf
+    ``i`` (``at``: clipped into each side), ``ok`` (a leaf is there), the gaps (``gap_at``)
+    and their cell counts ``nb``, ``na`` (0 unless ``ok``); ``missed``: leaves with gaps past
+    the list (each has at least one gap cell)."""
     ca = sides[0]["valid"].shape[0]
     flags = jnp.concatenate([s["has_gap"] for s in sides])
     pad = -flags.shape[0] % 32
@@ -492,12 +489,12 @@ def _gap_entries(sides, rows: int):
     ok = r < found[-1]
     side = (e >= ca).astype(jnp.int32)
     i = jnp.where(side == 1, e - ca, e)
-    sizes = [s["valid"].shape[0] for s in sides]
-    per_side = [s["gap_at"](jnp.clip(i, 0, n - 1)) for s, n in zip(sides, sizes)]
+    at = [jnp.clip(i, 0, s["valid"].shape[0] - 1) for s in sides]  # i, in range on each side
+    per_side = (s["gap_at"](a) for s, a in zip(sides, at))
     gap = tuple(jnp.where(side == 1, b, a) for a, b in zip(*per_side))
     nb = jnp.where(ok, _gap_plan(*gap[0:4]), 0)
     na = jnp.where(ok, _gap_plan(*gap[4:8]), 0)
-    return dict(side=side, i=i, ok=ok, gap=gap, nb=nb, na=na,
+    return dict(side=side, i=i, at=at, ok=ok, gap=gap, nb=nb, na=na,
                 missed=jnp.maximum(found[-1] - rows, 0).astype(jnp.int32))
 
 
@@ -508,9 +505,7 @@ def _pair_gap_cells(g, sides, offs, code, depth, val, capacity: int, rows: int):
     first cells and computes its cell in closed form. Returns ``(code, depth, val, gap cells
     needed)``."""
     ent_rows = g["side"].shape[0]
-    side, i, nb, na = g["side"], g["i"], g["nb"], g["na"]
-    sizes = [s["valid"].shape[0] for s in sides]
-    at = [jnp.clip(i, 0, n - 1) for n in sizes]
+    side, at, nb, na = g["side"], g["at"], g["nb"], g["na"]
     off = jnp.where(side == 1, offs[1][at[1]], offs[0][at[0]])
     emits = jnp.where(side == 1, sides[1]["self_emit"][at[1]], sides[0]["self_emit"][at[0]])
     n = nb + na
