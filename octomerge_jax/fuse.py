@@ -504,18 +504,11 @@ def _pair_gap_cells(g, sides, offs, code, depth, val, capacity: int, rows: int):
     cell. Each of ``rows`` gap cells finds its leaf by a cumulative max over the leaves'
     first cells and computes its cell in closed form. Returns ``(code, depth, val, gap cells
     needed)``."""
-    ent_rows = g["side"].shape[0]
     side, at, nb, na = g["side"], g["at"], g["nb"], g["na"]
     off = jnp.where(side == 1, offs[1][at[1]], offs[0][at[0]])
     emits = jnp.where(side == 1, sides[1]["self_emit"][at[1]], sides[0]["self_emit"][at[0]])
-    n = nb + na
-    first = _cumsum(n) - n  # the leaf's first cell in the gap-cell list
-    n_cells = first[-1] + n[-1]
+    e, t, n_cells = _cell_owners(nb + na, rows)  # the leaf of each gap cell
     q = jnp.arange(rows, dtype=jnp.int32)
-    mark = jnp.zeros((rows,), jnp.int32).at[jnp.where(n > 0, first, rows)].set(
-        jnp.arange(ent_rows, dtype=jnp.int32) + 1, mode="drop")
-    e = jnp.maximum(_cummax(mark) - 1, 0)  # the leaf of each gap cell
-    t = q - first[e]
     nb_e = nb[e]
     bef = t < nb_e
     tt = jnp.where(bef, t, t - nb_e)
@@ -578,6 +571,17 @@ def _put_selfs(code, depth, val, selfs, total, cap, params, resolution, tree_dep
                         params, resolution, tree_depth)
 
 
+def _cell_owners(n, rows: int):
+    """Cells laid out owner after owner (owner ``k`` has ``n[k]`` of them, in order), in a
+    list of ``rows``: ``(owner, index within the owner, cells in all)`` per row, by a
+    cumulative max over the owners' first rows (rows past the cells repeat the last owner)."""
+    first = _cumsum(n) - n  # the owner's first row
+    mark = jnp.zeros((rows,), jnp.int32).at[jnp.where(n > 0, first, rows)].set(
+        jnp.arange(n.shape[0], dtype=jnp.int32) + 1, mode="drop")
+    owner = jnp.maximum(_cummax(mark) - 1, 0)
+    return owner, jnp.arange(rows, dtype=jnp.int32) - first[owner], first[-1] + n[-1]
+
+
 def _gap_cells(capacity: int, gap_capacity: int, gaps):
     """Gap cells from a compact list: ``(code (capacity, 2), depth, value)`` holding the first
     ``gap_capacity`` gap cells at their slots and padding elsewhere (the leaves' own cells go
@@ -605,11 +609,7 @@ def _gap_cells(capacity: int, gap_capacity: int, gaps):
         fields.append(x)
     slot, n, sh, sl, eh, el, v = fields
     n = jnp.where(r < nonempty[-1], n, 0)
-    first = _cumsum(n) - n  # the gap's first cell in the gap-cell list
-    n_cells = first[-1] + n[-1]
-    mark = jnp.zeros((gcap,), jnp.int32).at[jnp.where(n > 0, first, gcap)].set(r + 1, mode="drop")
-    g = jnp.maximum(_cummax(mark) - 1, 0)  # gap of each gap cell
-    t = r - first[g]
+    g, t, n_cells = _cell_owners(n, gcap)  # the gap of each gap cell
     ch, cl, cd = _gap_cell(sh[g], sl[g], eh[g], el[g], t)
     dst = jnp.where(r < n_cells, slot[g] + t, cap)
     code, depth, val = tree._padding(cap)
