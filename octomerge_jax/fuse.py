@@ -708,7 +708,7 @@ def _check_pair(maps: Sequence[OccupancyMap], names):
 
 
 def _finish(run, guess: int, capacity, traced: bool, return_report: bool, what: str):
-    """Run ``run(cap)``; plan the capacity on the host when not given (one retry on overflow)."""
+    """Run ``run(cap)``; plan the capacity on the host when not given (re-run on overflow)."""
     if capacity is not None:
         out, rep = run(int(capacity))
         if not traced and not return_report and bool(rep.overflow):
@@ -719,9 +719,8 @@ def _finish(run, guess: int, capacity, traced: bool, return_report: bool, what: 
         raise ValueError(f"{what}: pass a static capacity= when calling under jit/vmap")
     cap = bucket_capacity(guess)
     out, rep = run(cap)
-    need = int(rep.refined_cells)
-    if need > cap:
-        cap = bucket_capacity(need)
+    while int(rep.refined_cells) > cap:  # a lower bound when it overflowed: re-run larger
+        cap = bucket_capacity(int(rep.refined_cells))
         out, rep = run(cap)
     return (out, rep) if return_report else out
 
@@ -803,22 +802,25 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
     traced = _is_traced(*[m.count for m in maps])
 
     mode = jnp.asarray(_MODE[rule], jnp.int32)
-    sizes = None  # boundary lists sized to the maps' contents (host), else 2 x capacity
-    if len(maps) > 2 and not traced:
-        sizes = tuple(min(_list_size(int(n)), 2 * mk.capacity)
-                      for n, mk in zip(np.asarray(_boundary_counts(tuple(maps))), maps))
-
-    def kernel(cap, gcap):
-        if len(maps) == 2:  # the pair kernel is the one-pass refinement of two maps
+    if len(maps) == 2:  # the pair kernel is the one-pass refinement of two maps
+        def kernel(cap, gcap):
             return _fuse_pair(maps[0], maps[1], w[0], w[1], mode, cap, bool(prune),
                               gap_capacity=gcap)
-        return _fuse_many(tuple(maps), w, mode, cap, bool(prune), gap_capacity=gcap,
-                          list_sizes=sizes)
+        guess = 0 if traced else sum(int(m.count) for m in maps)
+    else:
+        # boundary lists sized to the maps' contents (host), else twice the capacities
+        sizes = tuple(2 * mk.capacity for mk in maps) if traced else tuple(
+            min(_list_size(int(n)), 2 * mk.capacity)
+            for n, mk in zip(np.asarray(_boundary_counts(tuple(maps))), maps))
+        plan = _many_plan(tuple(maps), sizes)  # the refinement once, laid out at its size
+
+        def kernel(cap, gcap):
+            return _many_emit(plan, tuple(maps), w, mode, cap, bool(prune), gap_capacity=gcap)
+        guess = 0 if traced else int(plan["total"])  # exact: no re-run
 
     def run(cap):
         return _sized_gaps(kernel, cap, traced, None)
 
-    guess = 0 if traced else sum(int(m.count) for m in maps)
     return _finish(run, guess, capacity, traced, return_report, "fuse_many")
 
 
@@ -871,20 +873,32 @@ def _list_size(n: int) -> int:
     return -(-max(int(n), 1) // step) * step
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "do_prune", "gap_capacity", "list_sizes"))
 def _fuse_many(maps, w, mode, capacity: int, do_prune: bool, gap_capacity: int | None = None,
                list_sizes: tuple[int, ...] | None = None):
-    """The m-map kernel: ``(map, FuseReport, gap cells)``. ``list_sizes``: static rows of
-    each map's boundary list (``None``: ``2 x capacity``, always enough; the host passes
-    ``_list_size`` of the leaves plus explicit ends). With ``gap_capacity`` an interval
-    that is one aligned cell (most) is written as it is and only the others are decomposed,
-    from a compact list (``_emit``)."""
-    m0 = maps[0]
+    """The m-map kernel: ``(map, FuseReport, gap cells)``, the refinement (``_many_plan``)
+    laid out (``_many_emit``). ``list_sizes``: static rows of each map's boundary list
+    (``None``: twice the map's capacity, always enough; the host passes ``_list_size`` of the
+    leaves plus explicit ends)."""
+    plan = _many_plan(maps, list_sizes or tuple(2 * mk.capacity for mk in maps))
+    return _many_emit(plan, maps, w, mode, capacity, do_prune, gap_capacity)
+
+
+def _map_of(maps, row):
+    """The map of global leaf row ``row`` (maps' rows concatenated)."""
+    first_row = np.cumsum([mk.capacity for mk in maps])
+    return sum((row >= int(f)).astype(jnp.int32) for f in first_row[:-1])
+
+
+@functools.partial(jax.jit, static_argnames=("list_sizes",))
+def _many_plan(maps, list_sizes: tuple[int, ...]):
+    """Phase 1 of the m-map kernel, everything the output size depends on: the merged
+    boundary list, per row its nesting ``level``, whether it starts a ``known`` interval and
+    that interval's cell count ``n_cells``; ``total`` cells, and the report's case counts.
+    ``list_sizes``: static rows of each map's boundary list."""
     m = len(maps)
     first_row = np.cumsum([0] + [mk.capacity for mk in maps])
-    sizes = list_sizes or tuple(2 * mk.capacity for mk in maps)
     # 1. every map's boundaries merged into one sorted list (a merge tree, log2(m) levels)
-    lists = [_boundaries(mk, int(first_row[k]), sizes[k]) for k, mk in enumerate(maps)]
+    lists = [_boundaries(mk, int(first_row[k]), list_sizes[k]) for k, mk in enumerate(maps)]
     while len(lists) > 1:
         nxt = [morton.merge_sorted(lists[i], lists[i + 1]) for i in range(0, len(lists) - 1, 2)]
         if len(lists) % 2:
@@ -914,22 +928,55 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool, gap_capacity: int |
     sd = jnp.right_shift(bkey & (_TAGS - 1), 1) - 1
     seh, sel = _end(bh, bl, sd)
     exact = is_start & (seh == bh[gn]) & (sel == bl[gn]) & (bh < _SENT)
-    map_of = lambda row: sum((row >= int(f)).astype(jnp.int32) for f in first_row[1:-1])  # noqa: E731
-    exact_k = jax.ops.segment_sum(exact.astype(jnp.int32), jnp.where(exact, map_of(bidx), m),
+    exact_k = jax.ops.segment_sum(exact.astype(jnp.int32), jnp.where(exact, _map_of(maps, bidx), m),
                                   num_segments=m + 1)[:m]
     leaf_key = jnp.right_shift(bkey, 1)  # position and depth
     same_leaf = (_shift_down(leaf_key, -1) == leaf_key) & (_shift_down(bh, -1) == bh)
     dup = exact & _shift_down(exact, False) & same_leaf  # the previous row is the same leaf
     same_depth = jnp.sum(dup & ~_shift_down(dup, False))  # positions with >= 2 equal leaves
 
-    def open_level(lv, rows):
-        """``rows[k]``: map k's leaf row on every interval (-1 where it has none)."""
-        s = jnp.maximum(_cummax(jnp.where(is_start & (level == lv), q, -1)), 0)
-        on = known & (level >= lv)
-        row = bidx[s]
-        return rows.at[jnp.where(on, map_of(row), m), q].set(row, mode="drop")
+    n_cells = _materialize(maps[0].count >= 0, lambda: jnp.where(known, _gap_plan(bh, bl, nh, nl), 0))
+    return dict(bh=bh, bl=bl, nh=nh, nl=nl, bidx=bidx, is_start=is_start, level=level, known=known,
+                n_cells=n_cells, total=jnp.sum(n_cells).astype(jnp.int32),
+                cells_both=jnp.sum(jnp.where(level >= 2, n_cells, 0)).astype(jnp.int32),
+                split=jnp.stack([mk.count for mk in maps]).astype(jnp.int32) - exact_k,
+                same_depth=same_depth.astype(jnp.int32))
 
-    rows = jax.lax.fori_loop(1, jnp.max(level) + 1, open_level, jnp.full((m, n_b), -1, jnp.int32))
+
+@functools.partial(jax.jit, static_argnames=("capacity", "do_prune", "gap_capacity"))
+def _many_emit(plan, maps, w, mode, capacity: int, do_prune: bool, gap_capacity: int | None = None):
+    """Phase 2 of the m-map kernel: one value per known interval (maps in order), the
+    intervals decomposed into ``capacity`` rows of aligned cells, pruned if ``do_prune``:
+    ``(map, FuseReport, gap cells)``. With ``gap_capacity`` an interval that is one aligned
+    cell (most) is written as it is and only the others are decomposed, from a compact list
+    (``_emit``)."""
+    m0, m = maps[0], len(maps)
+    bidx, level, known, is_start = plan["bidx"], plan["level"], plan["known"], plan["is_start"]
+    n_b = bidx.shape[0]
+    q = jnp.arange(n_b, dtype=jnp.int32)
+    # the known intervals, compacted: each is one or more cells of the output, so at most
+    # ``capacity`` of them fit (more is an overflow); the per-map work runs on them only (the
+    # boundary list has a row per leaf start and explicit end of every map, several per
+    # interval where maps overlap)
+    n_known = jnp.sum(known.astype(jnp.int32))
+    if capacity < n_b:
+        r = jnp.arange(capacity, dtype=jnp.int32)
+        at = jnp.full((capacity,), n_b - 1, jnp.int32).at[
+            jnp.where(known, _cumsum(known.astype(jnp.int32)) - 1, capacity)].set(q, mode="drop")
+        pick = lambda x: x[at]  # noqa: E731
+        on_list = r < n_known
+    else:  # no fewer rows than the list itself: every row stays
+        r, pick, on_list = q, lambda x: x, known  # noqa: E731
+    level_k = jnp.where(on_list, pick(level), 0)
+
+    def open_level(lv, rows):
+        """``rows[k]``: map k's leaf row on every known interval (-1 where it has none)."""
+        s = jnp.maximum(_cummax(jnp.where(is_start & (level == lv), q, -1)), 0)
+        row = bidx[pick(s)]
+        return rows.at[jnp.where(level_k >= lv, _map_of(maps, row), m), r].set(row, mode="drop")
+
+    rows = jax.lax.fori_loop(1, jnp.max(level) + 1, open_level,
+                             jnp.full((m, r.shape[0]), -1, jnp.int32))
     lo_c, hi_c = m0.params.clamp_min_log_odds, m0.params.clamp_max_log_odds
     leaf_v = jnp.concatenate([mk.log_odds for mk in maps])
     counts = jnp.stack([mk.count for mk in maps]).astype(jnp.int32)
@@ -953,9 +1000,10 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool, gap_capacity: int |
 
     acc, _ = jax.lax.fori_loop(1, m, add_map, (acc, cov0))
     # 4. decompose the known intervals into aligned cells, laid out in order
-    n_cells = _materialize(m0.count >= 0, lambda: jnp.where(known, _gap_plan(bh, bl, nh, nl), 0))
+    bh, bl, nh, nl = (pick(plan[k]) for k in ("bh", "bl", "nh", "nl"))
+    n_cells = jnp.where(on_list, pick(plan["n_cells"]), 0)
     ends = _cumsum(n_cells)
-    total = ends[-1].astype(jnp.int32)
+    total = plan["total"]  # all intervals' cells (those past a short list too)
     value, first = jnp.clip(acc, lo_c, hi_c), ends - n_cells
     compact = gap_capacity is not None and gap_capacity < capacity
     if compact:
@@ -976,9 +1024,9 @@ def _fuse_many(maps, w, mode, capacity: int, do_prune: bool, gap_capacity: int |
         leaves_in=counts,
         refined_cells=total,
         leaves_out=out.count,
-        same_depth=same_depth.astype(jnp.int32),
-        split=counts - exact_k,
-        cells_both=jnp.sum(jnp.where(level >= 2, n_cells, 0)).astype(jnp.int32),
+        same_depth=plan["same_depth"],
+        split=plan["split"],
+        cells_both=plan["cells_both"],
         cells_new=jnp.sum(jnp.where(~cov0, n_cells, 0)).astype(jnp.int32),
         overflow=(total > capacity) | ((n_gap > gap_capacity) if compact else False),
         capacity=capacity,

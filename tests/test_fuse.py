@@ -416,12 +416,21 @@ def test_fuse_many_deep_nesting_equals_fold():
     split, same = ref_split_counts(maps)
     sizes = [F._list_size(int(n)) for n in np.asarray(F._boundary_counts(tuple(maps)))]
     assert all(s < 2 * m.capacity for s, m in zip(sizes, maps))  # the host compacts the lists
-    jit_default = F._fuse_many(tuple(maps), jnp.ones(5, jnp.float32), jnp.int32(0), CAP_OUT, True)
-    for out, rep in (F.fuse_many(maps, return_report=True), jit_default[:2]):
+    # the jit default lists (2 x capacity rows each, 20480 in all): the known intervals are
+    # compacted into the CAP_OUT rows of the output; with 32768 rows they are not
+    jit_default = [F._fuse_many(tuple(maps), jnp.ones(5, jnp.float32), jnp.int32(0), cap, True)[:2]
+                   for cap in (CAP_OUT, 8 * CAP_OUT)]
+    for out, rep in [F.fuse_many(maps, return_report=True)] + jit_default:
         assert_same_leaves(out, want)
         h = rep.host()
         assert (h["split"], h["same_depth"]) == (split, same)
         assert not h["overflow"] and h["leaves_in"] == [m.num_leaves for m in maps]
+    # more known intervals than output rows: an overflow, reported with a lower bound that
+    # exceeds the capacity (the host re-runs larger), never a silent truncation
+    _, short = F.fuse_many(maps, capacity=64, return_report=True)
+    assert bool(short.overflow) and 64 < int(short.refined_cells) <= int(rep.refined_cells)
+    with pytest.raises(ValueError, match="capacity 64"):
+        F.fuse_many(maps, capacity=64)
     for rule, w in (("max", None), ("weighted", (0.5, 1.0, 2.0, 0.25, 1.5))):
         assert_same_leaves(F.fuse_many(maps, rule, weights=w), ref_fuse(maps, rule, w))
 
