@@ -54,8 +54,9 @@ to p = 0.6) are not reproduced.
 the ends no next leaf starts at) merged into one sorted list (a merge tree, no sort; lists
 sized to the maps' contents on the host), elementary intervals, one common refinement. The
 leaves covering an interval are nested, so a running count of open leaves gives its nesting
-level, and one cumulative max per level present (not per map) finds its leaves; one
-combined value per cell (two maps: the pair kernel above, which is that refinement, ~2x
+level, and one cumulative max per level present (not per map) finds its leaves, kept for
+the known intervals only (compacted: several boundary rows per interval where maps
+overlap); the exact cell count is planned before the layout; one combined value per cell (two maps: the pair kernel above, which is that refinement, ~2x
 faster for two). For ``"sum"`` it is bit-identical to folding ``fuse`` left to right (values
 are accumulated in map order with a clamp after each map, as the fold does).
 
@@ -783,11 +784,13 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
     ``weights``: ``(m,)`` floats for ``"weighted"``. Other arguments as ``fuse``.
 
     On the host the boundary lists are sized to the maps' leaves and gaps (rounded to an
-    eighth of an octave); under ``jit`` / ``vmap`` to ``2 x capacity`` (always enough).
+    eighth of an octave), the refinement is planned once (its exact cell count) and laid out
+    in its own capacity bucket; under ``jit`` / ``vmap`` the lists have twice each map's
+    capacity (always enough).
 
-    Speed on 2 CPU cores (``benchmarks/bench_fuse.py``): 1.2-1.5x faster than the fold for
+    Speed on 2 CPU cores (``benchmarks/bench_fuse.py``): 1.2-1.7x faster than the fold for
     m = 4 / 8 maps that each overlap their neighbours; when all m maps cover the same volume,
-    the fold of ``fuse`` is faster (``fuse_many`` takes 1.4-1.75x its time at m = 4 / 8).
+    the fold of ``fuse`` is faster (``fuse_many`` takes 1.2-1.4x its time at m = 4 / 8).
     """
     maps = list(maps)
     if not maps:
