@@ -56,9 +56,10 @@ sized to the maps' contents on the host), elementary intervals, one common refin
 leaves covering an interval are nested, so a running count of open leaves gives its nesting
 level, and one cumulative max per level present (not per map) finds its leaves, kept for
 the known intervals only (compacted: several boundary rows per interval where maps
-overlap); the exact cell count is planned before the layout; one combined value per cell (two maps: the pair kernel above, which is that refinement, ~2x
-faster for two). For ``"sum"`` it is bit-identical to folding ``fuse`` left to right (values
-are accumulated in map order with a clamp after each map, as the fold does).
+overlap). The exact cell count is planned before the layout. One combined value per cell
+(two maps: the pair kernel above, which is that refinement, ~2x faster for two). For
+``"sum"`` it is bit-identical to folding ``fuse`` left to right (values are accumulated in
+map order with a clamp after each map, as the fold does).
 
 Everything is jitted with static capacities; a refinement larger than the capacity is
 reported in ``FuseReport.overflow`` (and raised on the host when no report is requested),
