@@ -29,6 +29,9 @@ of the office read from ``.bt`` bytes, map 2 transformed into map 1's frame, as 
 a merge (slow to simulate; ``gaps`` column: gap cells of the refinement).
 
 Usage: ``python benchmarks/bench_fuse.py [--sizes small,medium,large] [--pairs ml,noisy] [--repeats 3] [--no-cpp]``
+Each pair is timed at its refinement's own capacity bucket (``capacity=``, as a batch that reuses
+a report would call it); ``def cap`` / ``x default``: the capacity ``fuse(m1, m2)`` plans without
+one (the bucket of ``n1 + n2``) and that call's anchor ratio.
 Prints a table; compile (first call) is reported apart from the steady-state median
 (``block_until_ready``; ``fuse`` with and without pruning called alternately, at least
 ``--repeats`` times each and 2 s in all, since a 20 ms call's median over 3 calls swings 1.5x on
@@ -226,7 +229,7 @@ def bench_pairs(sizes, kinds, repeats, exe=None):
           "noisy: both noisy; robots: simulated office maps via .bt, map 2 transformed (see robot_pair)")
     hdr = (f"{'size':>7} {'pair':>5} {'n1':>9} {'n2':>9} {'refined':>9} {'gaps':>7} {'out':>9} {'cap':>9} "
            f"{'compile s':>9} {'merge s':>8} {'+prune s':>8} {'Mleaf/s':>8} {'anchor':>12} "
-           f"{'x anchor':>8} {'x, IQR':>11} {'octomap s':>14} {'x octomap':>9} {'x shuffled':>9} {'same':>5} {'peakGB':>6}")
+           f"{'x anchor':>8} {'x, IQR':>11} {'def cap':>8} {'x default':>9} {'octomap s':>14} {'x octomap':>9} {'x shuffled':>9} {'same':>5} {'peakGB':>6}")
     print(hdr)
     for name, kind in ((n, k) for n in sizes for k in kinds):
         if kind == "robots" and name not in ROBOT_RES:
@@ -248,6 +251,10 @@ def bench_pairs(sizes, kinds, repeats, exe=None):
         n = m1.num_leaves + m2.num_leaves
         rate = n / total
         a_rate, a_n = anchor_rate(n)
+        # the default call fuse(m1, m2) plans bucket(n1 + n2) rows, which can be twice cap
+        t_default = total if rep.capacity == cap else timed_pair(
+            lambda: F.fuse(m1, m2, capacity=cap).code, lambda: F.fuse(m1, m2).code, repeats,
+            min_seconds=2.0)[1]
         x_lo, x_hi = (n / q / a_rate for q in q_total[::-1])  # x anchor at the 75 % / 25 % quantile times
         peer, ref = run_octomap_peer(exe, f"{name}_{kind}", m1, m2, repeats) if exe else (None, None)
         if peer:
@@ -262,7 +269,7 @@ def bench_pairs(sizes, kinds, repeats, exe=None):
         print(f"{name:>7} {kind:>5} {m1.num_leaves:>9} {m2.num_leaves:>9} {int(rep.refined_cells):>9} {n_gap:>7} "
               f"{int(rep.leaves_out):>9} {cap:>9} {compile_s:>9.2f} {merge:>8.3f} "
               f"{total - merge:>8.3f} {rate / 1e6:>8.2f} {f'{a_rate / 1e6:.2f}@{a_n / 1e6:.1f}M':>12} "
-              f"{rate / a_rate:>8.2f} {x_lo:>5.2f}-{x_hi:<5.2f} {octo:>14} {x_octo:>9} {x_shuf:>9} {same:>5} "
+              f"{rate / a_rate:>8.2f} {x_lo:>5.2f}-{x_hi:<5.2f} {rep.capacity:>8} {n / t_default / a_rate:>9.2f} {octo:>14} {x_octo:>9} {x_shuf:>9} {same:>5} "
               f"{peak_rss_gb():>6.2f}", flush=True)
     print(f"load average {os.getloadavg()[0]:.2f}")
 

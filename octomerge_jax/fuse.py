@@ -419,47 +419,56 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     )
 
 
-def _lay_out(sides, before, capacity: int, gap_capacity, params, resolution, tree_depth,
-             with_gaps: bool):
-    """The common refinement of the pair kernel's two sides (unpruned): every leaf's cell
-    count, prefix sums in merged order, the leaves' own cells scattered to their slots and,
-    ``with_gaps``, the gap cells (``_gap_entries``, ``_pair_gap_cells``). ``before[k]``: per
-    leaf of side ``k``, the other side's leaves before it (ranks). ``gap_capacity``: rows of
-    the lists of leaves with gaps and of gap cells (``None``: room for all). Returns ``(map,
-    total cells, gap cells needed, gap cells of side 0)``; the total is a lower bound when
-    the gap list overflowed (gap cells needed > ``gap_capacity``)."""
-    sizes = [s["valid"].shape[0] for s in sides]
-    if with_gaps:
-        g = _gap_entries(sides, gap_capacity or sum(sizes))
-        nbs, nas = [], []
-        for k, (s, n) in enumerate(zip(sides, sizes)):
-            at = jnp.where(g["ok"] & (g["side"] == k), g["i"], n)
-            packed = jnp.zeros((n,), jnp.int32).at[at].set(g["nb"] | jnp.left_shift(g["na"], 16),
-                                                           mode="drop")
-            nbs.append(packed & 0xFFFF)
-            nas.append(jnp.right_shift(packed, 16))
-    else:
-        nbs = nas = [jnp.int32(0)] * 2
-    counts = [nb + s["self_emit"].astype(jnp.int32) + na for s, nb, na in zip(sides, nbs, nas)]
-    # merged order: m1 leaf i is preceded by the m2 leaves with code < its code; m2 leaf j
-    # by the m1 leaves with code <= its code (ties: m1 first; one of a tied pair emits nothing
-    # or the pair is equal and only m1 emits).
-    p = [_cumsum(c) for c in counts]
-    total = (p[0][-1] + p[1][-1]).astype(jnp.int32)
-    selfs, offs = [], []
-    for k, (s, nb) in enumerate(zip(sides, nbs)):
-        off = p[k] - counts[k] + _excl_at(p[1 - k], before[k])
-        offs.append(off)
-        selfs.append((jnp.where(s["self_emit"], off + nb, capacity),) + s["self_row"])
-    code, depth, val = tree._padding(capacity)
+def _pair_cells(sides, rows: int, with_gaps: bool):
+    """Every leaf's cells in the pair kernel's refinement (the gap before it, its own, the gap
+    after it), prefix-summed per side: ``(p, g, after)``. ``with_gaps``: the leaves with gaps
+    are listed in ``rows`` rows (``g``, ``_gap_entries``) and their cell counts scattered
+    back, ``after[k]`` the cells after each leaf; else ``g`` is ``None``, ``after`` zeros."""
+    emit = [s["self_emit"].astype(jnp.int32) for s in sides]
     if not with_gaps:
-        out = _put_selfs(code, depth, val, selfs, total, capacity, params, resolution, tree_depth)
-        return out, total, jnp.int32(0), jnp.int32(0)
-    code, depth, val, n_gap = _pair_gap_cells(g, sides, offs, code, depth, val, capacity,
-                                              gap_capacity or capacity)
-    out = _put_selfs(code, depth, val, selfs, total, capacity, params, resolution, tree_depth)
-    new = jnp.sum(jnp.where(g["side"] == 0, g["nb"] + g["na"], 0)).astype(jnp.int32)
-    return out, total + g["missed"], n_gap, new
+        return tuple(_cumsum(e) for e in emit), None, (0, 0)
+    g = _gap_entries(sides, rows)
+    cells, after = [], []
+    for k, e in enumerate(emit):
+        n = e.shape[0]
+        packed = jnp.zeros((n,), jnp.int32).at[jnp.where(g["ok"] & (g["side"] == k), g["i"], n)].set(
+            g["nb"] | jnp.left_shift(g["na"], 16), mode="drop")
+        after.append(jnp.right_shift(packed, 16))
+        cells.append((packed & 0xFFFF) + e + after[-1])
+    return tuple(_cumsum(c) for c in cells), g, tuple(after)
+
+
+def _pair_write(maps, emit, vals, before, p, g, after, capacity: int, cell_rows: int):
+    """The refinement laid out in ``capacity`` rows (unpruned): the leaves' own cells at their
+    slots and, with a gap list ``g``, the gap cells (``_pair_gap_cells``, a list of
+    ``cell_rows``). Merged order: m1 leaf i comes after the m2 leaves with code < its code;
+    m2 leaf j after the m1 leaves with code <= its code (``before``; ties: m1 first, one of a
+    tied pair emits nothing or the pair is equal and only m1 emits). ``after``: the cells
+    after each leaf (``None``: from ``g``). Returns ``(map, total cells, gap cells needed,
+    gap cells of side 0)``; the total is a lower bound when ``g`` missed leaves."""
+    excl = [_excl_at(p[1 - k], before[k]) for k in range(2)]  # the other side's cells before
+    total = p[0][-1] + p[1][-1]
+    code, depth, val = tree._padding(capacity)
+    n_gap = new = jnp.int32(0)
+    if g is None:
+        after = (0, 0)
+    else:
+        side, at = g["side"], g["at"]
+        if after is None:
+            after = tuple(jnp.zeros((e.shape[0],), jnp.int32).at[
+                jnp.where(g["ok"] & (side == k), g["i"], e.shape[0])].set(g["na"], mode="drop")
+                for k, e in enumerate(emit))
+        pick = lambda x: jnp.where(side == 1, x[1][at[1]], x[0][at[0]])  # noqa: E731
+        emits = pick(emit).astype(jnp.int32)
+        first = pick(p) - (g["nb"] + emits + g["na"]) + pick(excl)
+        code, depth, val, n_gap = _pair_gap_cells(g, first, emits, code, depth, val, capacity, cell_rows)
+        total = total + g["missed"]
+        new = jnp.sum(jnp.where(side == 0, g["nb"] + g["na"], 0)).astype(jnp.int32)
+    selfs = [(jnp.where(emit[k], p[k] - 1 - after[k] + excl[k], capacity), m.code, m.depth, vals[k])
+             for k, m in enumerate(maps)]
+    m1 = maps[0]
+    out = _put_selfs(code, depth, val, selfs, total, capacity, m1.params, m1.resolution, m1.tree_depth)
+    return out, total.astype(jnp.int32), n_gap, new
 
 
 def _gap_entries(sides, rows: int):
@@ -500,15 +509,13 @@ def _gap_entries(sides, rows: int):
                 missed=jnp.maximum(found[-1] - rows, 0).astype(jnp.int32))
 
 
-def _pair_gap_cells(g, sides, offs, code, depth, val, capacity: int, rows: int):
+def _pair_gap_cells(g, first, emits, code, depth, val, capacity: int, rows: int):
     """Write the gap cells of the leaves in ``g`` (``_gap_entries``) at their slots: the gap
-    before leaf ``i`` from its first slot ``offs[side][i]``, the gap after it after its own
-    cell. Each of ``rows`` gap cells finds its leaf by a cumulative max over the leaves'
-    first cells and computes its cell in closed form. Returns ``(code, depth, val, gap cells
-    needed)``."""
-    side, at, nb, na = g["side"], g["at"], g["nb"], g["na"]
-    off = jnp.where(side == 1, offs[1][at[1]], offs[0][at[0]])
-    emits = jnp.where(side == 1, sides[1]["self_emit"][at[1]], sides[0]["self_emit"][at[0]])
+    before a listed leaf from its first slot ``first``, the gap after it after its own cell
+    (``emits``: 1 if it has one). Each of ``rows`` gap cells finds its leaf by a cumulative
+    max over the leaves' first cells and computes its cell in closed form. Returns ``(code,
+    depth, val, gap cells needed)``."""
+    nb, na = g["nb"], g["na"]
     e, t, n_cells = _cell_owners(nb + na, rows)  # the leaf of each gap cell
     q = jnp.arange(rows, dtype=jnp.int32)
     nb_e = nb[e]
@@ -517,7 +524,7 @@ def _pair_gap_cells(g, sides, offs, code, depth, val, capacity: int, rows: int):
     gap = g["gap"]
     sh, sl, eh, el = (jnp.where(bef, gap[k][e], gap[k + 4][e]) for k in range(4))
     ch, cl, cd = _gap_cell(sh, sl, eh, el, tt)
-    slot = off[e] + jnp.where(bef, t, nb_e + emits[e].astype(jnp.int32) + tt)
+    slot = first[e] + jnp.where(bef, t, nb_e + emits[e] + tt)
     dst = jnp.where(q < n_cells, slot, capacity)
     code = code.at[dst].set(jnp.stack([ch, cl], -1), mode="drop")
     depth = depth.at[dst].set(cd, mode="drop")
@@ -624,29 +631,21 @@ def _excl_at(incl, idx):
     return jnp.where(idx > 0, incl[jnp.clip(idx - 1, 0, incl.shape[0] - 1)], 0)
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "do_prune", "gap_capacity"))
-def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, do_prune: bool,
-               gap_capacity: int | None = None):
-    """The pair kernel: ``(map, FuseReport, gap cells)``; ``gap_capacity``: see ``_lay_out``."""
+def _pair_sides(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule):
+    """The merge of the two leaf lists and both sides' plans (``_side``): ``(sides, before)``,
+    ``before[k]`` per leaf of side ``k`` the other side's leaves before it (ranks)."""
     h1, l1, h2, l2 = m1.code[:, 0], m1.code[:, 1], m2.code[:, 0], m2.code[:, 1]
     lt2, le1 = morton.merge_ranks(h1, l1, h2, l2, (m1.count, m2.count))  # #m2 < m1_i, #m1 <= m2_j
     k = jnp.clip(lt2, 0, m2.capacity - 1)
     le2 = lt2 + ((lt2 < m2.count) & (h2[k] == h1) & (l2[k] == l1)).astype(jnp.int32)
     lo_c, hi_c = m1.params.clamp_min_log_odds, m1.params.clamp_max_log_odds
-    s1 = _side(True, m1, m2, le2, rule, w1, w2, lo_c, hi_c)
-    s2 = _side(False, m2, m1, le1, rule, w2, w1, lo_c, hi_c)
-    compact = gap_capacity is not None and gap_capacity < capacity
-    lay = functools.partial(_lay_out, (s1, s2), (lt2, le1), capacity,
-                            gap_capacity if compact else None, m1.params, m1.resolution,
-                            m1.tree_depth)
-    # gaps (parts of a split leaf the finer map does not know) are rare; without any, their
-    # closed-form cell counts and layout are skipped (under vmap both branches run)
-    out, total, n_gap, new_gap_cells = jax.lax.cond(
-        s1["any_gap"] | s2["any_gap"], lambda: lay(True), lambda: lay(False))
-    if do_prune:
-        out = tree._prune_runs(out)
-    st1, st2 = s1["stats"], s2["stats"]
-    report = FuseReport(
+    return (_side(True, m1, m2, le2, rule, w1, w2, lo_c, hi_c),
+            _side(False, m2, m1, le1, rule, w2, w1, lo_c, hi_c)), (lt2, le1)
+
+
+def _pair_report(m1, m2, stats, total, out, new_gap_cells, overflow, capacity: int):
+    st1, st2 = stats
+    return FuseReport(
         leaves_in=jnp.stack([m1.count, m2.count]).astype(jnp.int32),
         refined_cells=total,
         leaves_out=out.count,
@@ -654,10 +653,92 @@ def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, 
         split=jnp.stack([st1["split"], st2["split"]]).astype(jnp.int32),
         cells_both=(st1["both"] + st2["both"]).astype(jnp.int32),
         cells_new=(st2["new_self"] + new_gap_cells).astype(jnp.int32),
-        overflow=(total > capacity) | ((n_gap > gap_capacity) if compact else False),
+        overflow=overflow,
         capacity=capacity,
     )
-    return out, report, n_gap
+
+
+@functools.partial(jax.jit, static_argnames=("capacity", "do_prune", "gap_capacity"))
+def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, do_prune: bool,
+               gap_capacity: int | None = None):
+    """The pair kernel, one program: ``(map, FuseReport, gap cells)``. ``gap_capacity``: rows
+    of the lists of leaves with gaps and of gap cells (``None``: room for all)."""
+    sides, before = _pair_sides(m1, m2, w1, w2, rule)
+    compact = gap_capacity is not None and gap_capacity < capacity
+    rows = gap_capacity if compact else sum(s["valid"].shape[0] for s in sides)
+    emit, vals = [s["self_emit"] for s in sides], [s["self_row"][2] for s in sides]
+
+    def lay(with_gaps):
+        p, g, after = _pair_cells(sides, rows, with_gaps)
+        return _pair_write((m1, m2), emit, vals, before, p, g, after, capacity,
+                           gap_capacity if compact else capacity)
+
+    # gaps (parts of a split leaf the finer map does not know) are rare; without any, their
+    # closed-form cell counts and layout are skipped (under vmap both branches run)
+    out, total, n_gap, new_gap_cells = jax.lax.cond(
+        sides[0]["any_gap"] | sides[1]["any_gap"], lambda: lay(True), lambda: lay(False))
+    if do_prune:
+        out = tree._prune_runs(out)
+    overflow = (total > capacity) | ((n_gap > gap_capacity) if compact else False)
+    rep = _pair_report(m1, m2, [s["stats"] for s in sides], total, out, new_gap_cells, overflow, capacity)
+    return out, rep, n_gap
+
+
+@functools.partial(jax.jit, static_argnames=("gap_rows",))
+def _pair_plan(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, gap_rows: int):
+    """The pair kernel's first phase, for a host that sizes the output from it: the merge,
+    both sides, the ``gap_rows``-row list of leaves with gaps ``g`` and every leaf's cells
+    prefix-summed (``p``); ``total`` cells and ``gap_cells`` (lower bounds when ``g``
+    missed leaves: ``g["missed"] > 0``)."""
+    sides, before = _pair_sides(m1, m2, w1, w2, rule)
+    any_gap = sides[0]["any_gap"] | sides[1]["any_gap"]
+    g_shape = jax.eval_shape(lambda: _pair_cells(sides, gap_rows, True)[1])
+    p, g = jax.lax.cond(any_gap, lambda: _pair_cells(sides, gap_rows, True)[:2], lambda: (
+        _pair_cells(sides, gap_rows, False)[0],
+        jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), g_shape)))
+    return dict(emit=[s["self_emit"] for s in sides], vals=[s["self_row"][2] for s in sides],
+                before=before, p=p, g=g, any_gap=any_gap, stats=[s["stats"] for s in sides],
+                total=(p[0][-1] + p[1][-1] + g["missed"]).astype(jnp.int32),
+                gap_cells=(jnp.sum(g["nb"] + g["na"]) + g["missed"]).astype(jnp.int32))
+
+
+@functools.partial(jax.jit, static_argnames=("capacity", "cell_rows", "do_prune"))
+def _pair_emit(plan, m1: OccupancyMap, m2: OccupancyMap, capacity: int, cell_rows: int,
+               do_prune: bool):
+    """The pair kernel's second phase: ``_pair_plan``'s refinement laid out in ``capacity``
+    rows (gap cells from a list of ``cell_rows``), pruned if ``do_prune``: ``(map,
+    FuseReport)``."""
+    def lay(with_gaps):
+        return _pair_write((m1, m2), plan["emit"], plan["vals"], plan["before"], plan["p"],
+                           plan["g"] if with_gaps else None, None, capacity, cell_rows)
+
+    out, total, n_gap, new_gap_cells = jax.lax.cond(plan["any_gap"], lambda: lay(True),
+                                                    lambda: lay(False))
+    if do_prune:
+        out = tree._prune_runs(out)
+    overflow = (total > capacity) | (plan["g"]["missed"] > 0) | (n_gap > cell_rows)
+    return out, _pair_report(m1, m2, plan["stats"], total, out, new_gap_cells, overflow, capacity)
+
+
+def _fuse_pair_planned(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, do_prune: bool,
+                       gap_capacity: int | None):
+    """The pair kernel on the host in two phases, the output sized from the first: its
+    refinement's own bucket of rows, room for all its gap cells (the list of leaves with gaps
+    starts at ``gap_capacity``, ``None``: ``default_gap_capacity`` of the inputs, and is
+    re-planned larger when it is short). Returns ``(map, FuseReport)``."""
+    n_in = m1.capacity + m2.capacity
+    rows = gap_capacity or default_gap_capacity(bucket_capacity(int(m1.count) + int(m2.count)))
+    while True:
+        rows = min(rows or n_in, n_in)
+        plan = _pair_plan(m1, m2, w1, w2, rule, gap_rows=rows)
+        missed, total, gap_cells = (int(x) for x in jax.device_get(
+            (plan["g"]["missed"], plan["total"], plan["gap_cells"])))
+        if not missed:
+            break
+        rows = bucket_capacity(rows + missed)
+    cap = bucket_capacity(total)
+    cell_rows = max(default_gap_capacity(cap) or cap, bucket_capacity(gap_cells))
+    return _pair_emit(plan, m1, m2, cap, min(cell_rows, cap), do_prune)
 
 
 # Host default room for gap cells: capacity / 8, at least 512. Measured (gap cells / cells of
@@ -737,8 +818,12 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
       rule: ``"sum"`` (eq. 5.15), ``"max"`` or ``"weighted"`` (see the module docstring).
       weights: ``(w1, w2)`` for ``"weighted"`` (traced floats; ignored by other rules).
       capacity: static row count of the output. ``None`` (host only) plans it: the
-        refinement is at most ``n1 + n2`` cells plus gap cells; one re-run if it is larger.
-        Under ``jit``/``vmap`` pass it explicitly and check ``FuseReport.overflow``.
+        refinement has between ``max(n1, n2)`` and ``n1 + n2`` cells plus gap cells. When
+        those bounds share a power-of-two bucket the kernel runs in it (re-run if gap cells
+        overflow it); else its first phase counts the cells and the output gets their own
+        bucket (up to half the rows, ~20 % faster; a pair whose count stays in the upper
+        bucket pays ~1-4 ms for the count). Under ``jit``/``vmap`` pass it explicitly and
+        check ``FuseReport.overflow``.
       prune: prune maximally (never into a depth-0 root leaf, as OctoMap). With ``False``
         the clamped common refinement is returned (sorted, disjoint, not pruned).
       return_report: also return a ``FuseReport``.
@@ -759,7 +844,20 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
         weights = (1.0, 1.0)
     w1, w2 = (jnp.asarray(w, jnp.float32) for w in weights)
     mode = jnp.asarray(_MODE[rule], jnp.int32)
+    return _fuse2(m1, m2, w1, w2, mode, capacity, prune, return_report, gap_capacity, "fuse")
+
+
+def _fuse2(m1, m2, w1, w2, mode, capacity, prune, return_report, gap_capacity, what):
+    """The pair kernel for ``fuse`` / ``fuse_many`` of two checked maps. The refinement has
+    between ``max(n1, n2)`` and ``n1 + n2`` cells (plus gap cells); on the host without a
+    ``capacity``, when those bounds lie in different buckets, it is planned first and laid
+    out in its own bucket (``_fuse_pair_planned``), else run in one program."""
     traced = _is_traced(m1.count, m2.count)
+    if capacity is None and not traced:
+        n1, n2 = int(m1.count), int(m2.count)
+        if bucket_capacity(max(n1, n2)) < bucket_capacity(n1 + n2):
+            out, rep = _fuse_pair_planned(m1, m2, w1, w2, mode, bool(prune), gap_capacity)
+            return (out, rep) if return_report else out
 
     def kernel(cap, gcap):
         return _fuse_pair(m1, m2, w1, w2, mode, cap, bool(prune), gap_capacity=gcap)
@@ -768,7 +866,7 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
         return _sized_gaps(kernel, cap, traced, gap_capacity)
 
     guess = 0 if traced else int(m1.count) + int(m2.count)
-    return _finish(run, guess, capacity, traced, return_report, "fuse")
+    return _finish(run, guess, capacity, traced, return_report, what)
 
 
 def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
@@ -807,20 +905,18 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
 
     mode = jnp.asarray(_MODE[rule], jnp.int32)
     if len(maps) == 2:  # the pair kernel is the one-pass refinement of two maps
-        def kernel(cap, gcap):
-            return _fuse_pair(maps[0], maps[1], w[0], w[1], mode, cap, bool(prune),
-                              gap_capacity=gcap)
-        guess = 0 if traced else sum(int(m.count) for m in maps)
-    else:
-        # boundary lists sized to the maps' contents (host), else twice the capacities
-        sizes = tuple(2 * mk.capacity for mk in maps) if traced else tuple(
-            min(_list_size(int(n)), 2 * mk.capacity)
-            for n, mk in zip(np.asarray(_boundary_counts(tuple(maps))), maps))
-        plan = _many_plan(tuple(maps), sizes)  # the refinement once, laid out at its size
+        return _fuse2(maps[0], maps[1], w[0], w[1], mode, capacity, prune, return_report, None,
+                      "fuse_many")
+    # boundary lists sized to the maps' contents (host), else twice the capacities
+    sizes = tuple(2 * mk.capacity for mk in maps) if traced else tuple(
+        min(_list_size(int(n)), 2 * mk.capacity)
+        for n, mk in zip(np.asarray(_boundary_counts(tuple(maps))), maps))
+    plan = _many_plan(tuple(maps), sizes)  # the refinement once, laid out at its size
 
-        def kernel(cap, gcap):
-            return _many_emit(plan, tuple(maps), w, mode, cap, bool(prune), gap_capacity=gcap)
-        guess = 0 if traced else int(plan["total"])  # exact: no re-run
+    def kernel(cap, gcap):
+        return _many_emit(plan, tuple(maps), w, mode, cap, bool(prune), gap_capacity=gcap)
+
+    guess = 0 if traced else int(plan["total"])  # exact: no re-run
 
     def run(cap):
         return _sized_gaps(kernel, cap, traced, None)

@@ -230,6 +230,16 @@ def test_compact_gap_list_matches_bruteforce(seed, rule):
     assert not bool(rep.overflow)
     assert_same_leaves(out, want)
     assert_same_leaves(F.fuse(m1, m2, rule, weights=weights, capacity=CAP_OUT, gap_capacity=1), want)
+    # planned first, then laid out in the refinement's own bucket (the host path when the
+    # cell count's bounds max(n1, n2) and n1 + n2 lie in different buckets); a list of
+    # leaves with gaps too short is re-planned larger
+    w1, w2 = (jnp.float32(w) for w in weights)
+    for gap_capacity in (None, 1):
+        out, rep = F._fuse_pair_planned(m1, m2, w1, w2, jnp.int32(F._MODE[rule]), True, gap_capacity)
+        assert_same_leaves(out, want)
+        assert not bool(rep.overflow) and rep.host() | {"capacity": 0} == F.fuse(
+            m1, m2, rule, weights=weights, capacity=CAP_OUT, return_report=True)[1].host() | {"capacity": 0}
+        assert out.capacity == omap.bucket_capacity(int(rep.refined_cells))
 
 
 def test_fuse_same_depth_identical_leaves():
