@@ -63,7 +63,10 @@ map order with a clamp after each map, as the fold does).
 
 Everything is jitted with static capacities; a refinement larger than the capacity is
 reported in ``FuseReport.overflow`` (and raised on the host when no report is requested),
-never silently truncated.
+never silently truncated. On the host without ``capacity=``, the output gets the
+refinement's own power-of-two bucket: ``fuse_many`` counts the cells first (its first
+phase), and so does ``fuse`` when the count's bounds ``max(n1, n2)`` and ``n1 + n2`` lie in
+different buckets (else it runs in one program at the bucket of ``n1 + n2``).
 """
 
 from __future__ import annotations
@@ -644,6 +647,7 @@ def _pair_sides(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule):
 
 
 def _pair_report(m1, m2, stats, total, out, new_gap_cells, overflow, capacity: int):
+    """The pair kernel's ``FuseReport`` from both sides' ``stats`` and the layout's counts."""
     st1, st2 = stats
     return FuseReport(
         leaves_in=jnp.stack([m1.count, m2.count]).astype(jnp.int32),
