@@ -430,7 +430,9 @@ def test_fuse_many_deep_nesting_equals_fold():
     # compacted into the CAP_OUT rows of the output; with 32768 rows they are not
     jit_default = [F._fuse_many(tuple(maps), jnp.ones(5, jnp.float32), jnp.int32(0), cap, True)[:2]
                    for cap in (CAP_OUT, 8 * CAP_OUT)]
-    for out, rep in [F.fuse_many(maps, return_report=True)] + jit_default:
+    host = F.fuse_many(maps, return_report=True)  # counted first: laid out in its own bucket
+    assert host[0].capacity == omap.bucket_capacity(int(host[1].refined_cells))
+    for out, rep in [host] + jit_default:
         assert_same_leaves(out, want)
         h = rep.host()
         assert (h["split"], h["same_depth"]) == (split, same)
