@@ -433,12 +433,17 @@ def _pair_cells(sides, rows: int, with_gaps: bool):
     g = _gap_entries(sides, rows)
     cells, after = [], []
     for k, e in enumerate(emit):
-        n = e.shape[0]
-        packed = jnp.zeros((n,), jnp.int32).at[jnp.where(g["ok"] & (g["side"] == k), g["i"], n)].set(
-            g["nb"] | jnp.left_shift(g["na"], 16), mode="drop")
+        packed = _to_leaves(g, k, e.shape[0], g["nb"] | jnp.left_shift(g["na"], 16))
         after.append(jnp.right_shift(packed, 16))
         cells.append((packed & 0xFFFF) + e + after[-1])
     return tuple(_cumsum(c) for c in cells), g, tuple(after)
+
+
+def _to_leaves(g, k, n: int, x):
+    """``x`` (int32) of the listed leaves of side ``k`` (``_gap_entries`` ``g``) scattered to
+    their leaves: ``(n,)``, 0 for the others."""
+    at = jnp.where(g["ok"] & (g["side"] == k), g["i"], n)
+    return jnp.zeros((n,), jnp.int32).at[at].set(x, mode="drop")
 
 
 def _pair_write(maps, emit, vals, before, p, g, after, capacity: int, cell_rows: int):
@@ -458,9 +463,7 @@ def _pair_write(maps, emit, vals, before, p, g, after, capacity: int, cell_rows:
     else:
         side, at = g["side"], g["at"]
         if after is None:
-            after = tuple(jnp.zeros((e.shape[0],), jnp.int32).at[
-                jnp.where(g["ok"] & (side == k), g["i"], e.shape[0])].set(g["na"], mode="drop")
-                for k, e in enumerate(emit))
+            after = tuple(_to_leaves(g, k, e.shape[0], g["na"]) for k, e in enumerate(emit))
         pick = lambda x: jnp.where(side == 1, x[1][at[1]], x[0][at[0]])  # noqa: E731
         emits = pick(emit).astype(jnp.int32)
         first = pick(p) - (g["nb"] + emits + g["na"]) + pick(excl)
