@@ -728,13 +728,14 @@ def _pair_emit(plan, m1: OccupancyMap, m2: OccupancyMap, capacity: int, cell_row
 
 
 def _fuse_pair_planned(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, do_prune: bool,
-                       gap_capacity: int | None):
+                       gap_capacity: int | None, n_leaves: int):
     """The pair kernel on the host in two phases, the output sized from the first: its
     refinement's own bucket of rows, room for all its gap cells (the list of leaves with gaps
     starts at ``gap_capacity``, ``None``: ``default_gap_capacity`` of the inputs, and is
-    re-planned larger when it is short). Returns ``(map, FuseReport)``."""
+    re-planned larger when it is short). ``n_leaves``: ``n1 + n2`` (read on the host).
+    Returns ``(map, FuseReport)``."""
     n_in = m1.capacity + m2.capacity
-    rows = gap_capacity or default_gap_capacity(bucket_capacity(int(m1.count) + int(m2.count)))
+    rows = gap_capacity or default_gap_capacity(bucket_capacity(n_leaves))
     while True:
         rows = min(rows or n_in, n_in)
         plan = _pair_plan(m1, m2, w1, w2, rule, gap_rows=rows)
@@ -860,11 +861,10 @@ def _fuse2(m1, m2, w1, w2, mode, capacity, prune, return_report, gap_capacity, w
     ``capacity``, when those bounds lie in different buckets, it is planned first and laid
     out in its own bucket (``_fuse_pair_planned``), else run in one program."""
     traced = _is_traced(m1.count, m2.count)
-    if capacity is None and not traced:
-        n1, n2 = int(m1.count), int(m2.count)
-        if bucket_capacity(max(n1, n2)) < bucket_capacity(n1 + n2):
-            out, rep = _fuse_pair_planned(m1, m2, w1, w2, mode, bool(prune), gap_capacity)
-            return (out, rep) if return_report else out
+    n1, n2 = (0, 0) if traced else (int(m1.count), int(m2.count))
+    if capacity is None and not traced and bucket_capacity(max(n1, n2)) < bucket_capacity(n1 + n2):
+        out, rep = _fuse_pair_planned(m1, m2, w1, w2, mode, bool(prune), gap_capacity, n1 + n2)
+        return (out, rep) if return_report else out
 
     def kernel(cap, gcap):
         return _fuse_pair(m1, m2, w1, w2, mode, cap, bool(prune), gap_capacity=gcap)
@@ -872,8 +872,7 @@ def _fuse2(m1, m2, w1, w2, mode, capacity, prune, return_report, gap_capacity, w
     def run(cap):
         return _sized_gaps(kernel, cap, traced, gap_capacity)
 
-    guess = 0 if traced else int(m1.count) + int(m2.count)
-    return _finish(run, guess, capacity, traced, return_report, what)
+    return _finish(run, n1 + n2, capacity, traced, return_report, what)
 
 
 def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,

@@ -235,7 +235,8 @@ def test_compact_gap_list_matches_bruteforce(seed, rule):
     # leaves with gaps too short is re-planned larger
     w1, w2 = (jnp.float32(w) for w in weights)
     for gap_capacity in (None, 1):
-        out, rep = F._fuse_pair_planned(m1, m2, w1, w2, jnp.int32(F._MODE[rule]), True, gap_capacity)
+        out, rep = F._fuse_pair_planned(m1, m2, w1, w2, jnp.int32(F._MODE[rule]), True, gap_capacity,
+                                        m1.num_leaves + m2.num_leaves)
         assert_same_leaves(out, want)
         assert not bool(rep.overflow) and rep.host() | {"capacity": 0} == F.fuse(
             m1, m2, rule, weights=weights, capacity=CAP_OUT, return_report=True)[1].host() | {"capacity": 0}
