@@ -239,7 +239,7 @@ def bench_pairs(sizes, kinds, repeats, exe=None):
         _, rep = F.fuse(m1, m2, return_report=True)  # host capacity planning
         cap = omap.bucket_capacity(int(rep.refined_cells))  # the refinement's own bucket
         n_gap = int(F._fuse_pair(m1, m2, jnp.float32(1), jnp.float32(1), jnp.int32(F._MODE["sum"]), cap,
-                                 True, gap_capacity=None)[2])  # gap cells of the refinement
+                                 True, gap_capacity=None)[2][0])  # gap cells of the refinement
         jax.clear_caches()  # the planning call above may have compiled this capacity already
         t0 = time.perf_counter()
         jax.block_until_ready(F.fuse(m1, m2, capacity=cap).code)

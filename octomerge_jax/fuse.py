@@ -27,9 +27,10 @@ How, on flat Morton intervals (a leaf at depth ``d`` covers ``[code, code + 8^(1
    sorted. Gap cells are few (0-7.5 % of the refinement measured, most with .bt inputs): when
    no leaf has one, their counts and layout are skipped altogether (``lax.cond``); otherwise
    the few leaves with a gap are found from one byte of flags per leaf (a prefix count and a
-   binary search), and only they compute their gaps, on a list of ``max(capacity / 8, 512)``
-   rows on the host (re-run with room for all if there are more); their cell counts are
-   scattered back for the prefix sum, and each gap cell finds its leaf by a cumulative max.
+   binary search), and only they compute their gaps, on a list of ``max(capacity / 16, 512)``
+   rows on the host; their cell counts are scattered back for the prefix sum, and each gap
+   cell, on a list of ``max(capacity / 8, 512)`` rows, finds its leaf by a cumulative max
+   (either list re-run with room for all if there are more).
    Values are combined per rule, clamped, and pruned maximally in one pass
    (``tree.prune``: a node collapses iff its interval lies in one run of contiguous,
    equal-valued leaves).
@@ -482,8 +483,8 @@ def _gap_entries(sides, rows: int):
     ``rows``: the ``r``-th found by a binary search in the prefix count of ``has_gap`` over
     blocks of 32 leaves, then by popcounts in its block's bit mask. Per row: ``side``, leaf
     ``i`` (``at``: clipped into each side), ``ok`` (a leaf is there), the gaps (``gap_at``)
-    and their cell counts ``nb``, ``na`` (0 unless ``ok``); ``missed``: leaves with gaps past
-    the list (each has at least one gap cell)."""
+    and their cell counts ``nb``, ``na`` (0 unless ``ok``); ``leaves``: leaves with gaps in
+    all, ``missed``: those past the list (each has at least one gap cell)."""
     ca = sides[0]["valid"].shape[0]
     flags = jnp.concatenate([s["has_gap"] for s in sides])
     pad = -flags.shape[0] % 32
@@ -512,6 +513,7 @@ def _gap_entries(sides, rows: int):
     nb = jnp.where(ok, _gap_plan(*gap[0:4]), 0)
     na = jnp.where(ok, _gap_plan(*gap[4:8]), 0)
     return dict(side=side, i=i, at=at, ok=ok, gap=gap, nb=nb, na=na,
+                leaves=found[-1].astype(jnp.int32),
                 missed=jnp.maximum(found[-1] - rows, 0).astype(jnp.int32))
 
 
@@ -665,30 +667,34 @@ def _pair_report(m1, m2, stats, total, out, new_gap_cells, overflow, capacity: i
     )
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "do_prune", "gap_capacity"))
+@functools.partial(jax.jit, static_argnames=("capacity", "do_prune", "gap_capacity", "gap_leaves"))
 def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, do_prune: bool,
-               gap_capacity: int | None = None):
-    """The pair kernel, one program: ``(map, FuseReport, gap cells)``. ``gap_capacity``: rows
-    of the lists of leaves with gaps and of gap cells (``None``: room for all)."""
+               gap_capacity: int | None = None, gap_leaves: int | None = None):
+    """The pair kernel, one program: ``(map, FuseReport, (gap cells, leaves with gaps))``.
+    ``gap_capacity``: rows of the list of gap cells (``None``: room for all); ``gap_leaves``:
+    rows of the list of leaves with gaps (``None``: ``gap_capacity``, never the shorter:
+    every such leaf has a gap cell)."""
     sides, before = _pair_sides(m1, m2, w1, w2, rule)
     compact = gap_capacity is not None and gap_capacity < capacity
-    rows = gap_capacity if compact else sum(s["valid"].shape[0] for s in sides)
+    rows = min(gap_leaves or gap_capacity, gap_capacity) if compact else sum(
+        s["valid"].shape[0] for s in sides)
     emit, vals = [s["self_emit"] for s in sides], [s["self_row"][2] for s in sides]
 
     def lay(with_gaps):
         p, g, after = _pair_cells(sides, rows, with_gaps)
-        return _pair_write((m1, m2), emit, vals, before, p, g, after, capacity,
-                           gap_capacity if compact else capacity)
+        out = _pair_write((m1, m2), emit, vals, before, p, g, after, capacity,
+                          gap_capacity if compact else capacity)
+        return out + (g["leaves"] if with_gaps else jnp.int32(0),)
 
     # gaps (parts of a split leaf the finer map does not know) are rare; without any, their
     # closed-form cell counts and layout are skipped (under vmap both branches run)
-    out, total, n_gap, new_gap_cells = jax.lax.cond(
+    out, total, n_gap, new_gap_cells, n_gap_leaves = jax.lax.cond(
         sides[0]["any_gap"] | sides[1]["any_gap"], lambda: lay(True), lambda: lay(False))
     if do_prune:
         out = tree._prune_runs(out)
-    overflow = (total > capacity) | ((n_gap > gap_capacity) if compact else False)
+    overflow = (total > capacity) | ((n_gap > gap_capacity) | (n_gap_leaves > rows) if compact else False)
     rep = _pair_report(m1, m2, [s["stats"] for s in sides], total, out, new_gap_cells, overflow, capacity)
-    return out, rep, n_gap
+    return out, rep, (n_gap, n_gap_leaves)
 
 
 @functools.partial(jax.jit, static_argnames=("gap_rows",))
@@ -728,14 +734,14 @@ def _pair_emit(plan, m1: OccupancyMap, m2: OccupancyMap, capacity: int, cell_row
 
 
 def _fuse_pair_planned(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, do_prune: bool,
-                       gap_capacity: int | None, n_leaves: int):
+                       gap_capacity: int | None, n_max: int):
     """The pair kernel on the host in two phases, the output sized from the first: its
     refinement's own bucket of rows, room for all its gap cells (the list of leaves with gaps
-    starts at ``gap_capacity``, ``None``: ``default_gap_capacity`` of the inputs, and is
-    re-planned larger when it is short). ``n_leaves``: ``n1 + n2`` (read on the host).
+    starts at ``gap_capacity``, ``None``: ``default_gap_leaves`` of the smallest possible
+    output, ``n_max = max(n1, n2)`` cells, and is re-planned larger when it is short).
     Returns ``(map, FuseReport)``."""
     n_in = m1.capacity + m2.capacity
-    rows = gap_capacity or default_gap_capacity(bucket_capacity(n_leaves))
+    rows = gap_capacity or default_gap_leaves(bucket_capacity(n_max))
     while True:
         rows = min(rows or n_in, n_in)
         plan = _pair_plan(m1, m2, w1, w2, rule, gap_rows=rows)
@@ -754,7 +760,9 @@ def _fuse_pair_planned(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, do_prun
 # transformed into another's frame, 3-7.5 % when both were loaded from .bt files (maximum
 # likelihood, pruned coarser); at capacity / 64 every such .bt merge ran the kernel twice. The
 # list's cost did not show (3.6M-cell refinement: 290 / 299 ms at capacity / 64 / 8, +-3 %).
-_GAP_SHARE, _GAP_MIN = 8, 512
+# The pair kernel's list of leaves with gaps: capacity / 16 (2.5-3 % of the refinement on the
+# .bt robot pairs); its rows cost ~30 ns each, its cell list's ~40 ns (2 cores, robots medium).
+_GAP_SHARE, _GAP_LEAF_SHARE, _GAP_MIN = 8, 16, 512
 
 
 def default_gap_capacity(capacity: int) -> int | None:
@@ -764,20 +772,34 @@ def default_gap_capacity(capacity: int) -> int | None:
     return room if room < capacity else None
 
 
+def default_gap_leaves(capacity: int) -> int:
+    """The host default rows of the pair kernel's list of leaves with gaps for an output of
+    ``capacity`` rows: ``max(capacity / 16, 512)``."""
+    return max(int(capacity) // _GAP_LEAF_SHARE, _GAP_MIN)
+
+
 def _sized_gaps(kernel, cap: int, traced: bool, gap_capacity):
-    """``kernel(cap, gap_capacity) -> (map, report, gap cells)`` with the gap list sized: on
-    the host (``gap_capacity=None``) ``default_gap_capacity``, re-run with room for all gap
-    cells when there are more; under ``jit``/``vmap`` as given (``None``: every slot, never
-    short). Returns ``(map, report)``."""
-    if gap_capacity is None and not traced:
-        gap_capacity = default_gap_capacity(cap)
-    out, rep, n_gap = kernel(cap, gap_capacity)
-    # the count is exact when the list held every leaf with gaps, else a lower bound (the
-    # pair kernel), so a second re-run may be needed
-    while not traced and gap_capacity is not None and int(n_gap) > gap_capacity:
-        more = bucket_capacity(int(n_gap))
-        gap_capacity = more if more < cap else None
-        out, rep, n_gap = kernel(cap, gap_capacity)
+    """``kernel(cap, gap_capacity, gap_leaves) -> (map, report, (gap cells, leaves with
+    gaps))`` with the gap lists sized: on the host (``gap_capacity=None``)
+    ``default_gap_capacity`` cells and ``default_gap_leaves`` leaves, re-run with room for all
+    when there are more; under ``jit``/``vmap`` as given (``None``: every slot, never short;
+    the leaf list as long as the cell list). Returns ``(map, report)``."""
+    leaves = None
+    if not traced:
+        gap_capacity = default_gap_capacity(cap) if gap_capacity is None else gap_capacity
+        leaves = None if gap_capacity is None else min(gap_capacity, default_gap_leaves(cap))
+    out, rep, (n_gap, n_leaves) = kernel(cap, gap_capacity, leaves)
+    # the cell count is exact when the list held every leaf with gaps, else a lower bound
+    # (the pair kernel), so a second re-run may be needed
+    while not traced and gap_capacity is not None:
+        n_gap, n_leaves = int(n_gap), int(n_leaves)
+        if n_gap <= gap_capacity and n_leaves <= leaves:
+            break
+        leaves = max(leaves, bucket_capacity(n_leaves))
+        if n_gap > gap_capacity:
+            more = bucket_capacity(n_gap)
+            gap_capacity = more if more < cap else None
+        out, rep, (n_gap, n_leaves) = kernel(cap, gap_capacity, leaves)
     return out, rep
 
 
@@ -837,8 +859,9 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
       return_report: also return a ``FuseReport``.
       gap_capacity: static room for *gap cells* (parts of a split leaf that the finer map
         does not know, thesis case 1 inside cases 3 / 4; rare in practice), and for the
-        leaves that have them. ``None``: on the host ``max(capacity / 8, 512)``, re-run with
-        room for all when there are more; under ``jit``/``vmap`` room for all (every leaf,
+        leaves that have them. ``None``: on the host ``max(capacity / 8, 512)`` (the leaves:
+        half that), re-run with room for all when there are more; under ``jit``/``vmap``
+        room for all (every leaf,
         ``capacity`` cells: never short, slower). A value that proves too small under ``jit``
         sets ``overflow`` (``refined_cells`` is then a lower bound).
 
@@ -863,11 +886,11 @@ def _fuse2(m1, m2, w1, w2, mode, capacity, prune, return_report, gap_capacity, w
     traced = _is_traced(m1.count, m2.count)
     n1, n2 = (0, 0) if traced else (int(m1.count), int(m2.count))
     if capacity is None and not traced and bucket_capacity(max(n1, n2)) < bucket_capacity(n1 + n2):
-        out, rep = _fuse_pair_planned(m1, m2, w1, w2, mode, bool(prune), gap_capacity, n1 + n2)
+        out, rep = _fuse_pair_planned(m1, m2, w1, w2, mode, bool(prune), gap_capacity, max(n1, n2))
         return (out, rep) if return_report else out
 
-    def kernel(cap, gcap):
-        return _fuse_pair(m1, m2, w1, w2, mode, cap, bool(prune), gap_capacity=gcap)
+    def kernel(cap, gcap, gleaves):
+        return _fuse_pair(m1, m2, w1, w2, mode, cap, bool(prune), gap_capacity=gcap, gap_leaves=gleaves)
 
     def run(cap):
         return _sized_gaps(kernel, cap, traced, gap_capacity)
@@ -919,8 +942,9 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
         for n, mk in zip(np.asarray(_boundary_counts(tuple(maps))), maps))
     plan = _many_plan(tuple(maps), sizes)  # the refinement once, laid out at its size
 
-    def kernel(cap, gcap):
-        return _many_emit(plan, tuple(maps), w, mode, cap, bool(prune), gap_capacity=gcap)
+    def kernel(cap, gcap, _):
+        out, rep, n_gap = _many_emit(plan, tuple(maps), w, mode, cap, bool(prune), gap_capacity=gcap)
+        return out, rep, (n_gap, 0)
 
     guess = 0 if traced else int(plan["total"])  # exact: no re-run
 

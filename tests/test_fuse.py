@@ -236,7 +236,7 @@ def test_compact_gap_list_matches_bruteforce(seed, rule):
     w1, w2 = (jnp.float32(w) for w in weights)
     for gap_capacity in (None, 1):
         out, rep = F._fuse_pair_planned(m1, m2, w1, w2, jnp.int32(F._MODE[rule]), True, gap_capacity,
-                                        m1.num_leaves + m2.num_leaves)
+                                        max(m1.num_leaves, m2.num_leaves))
         assert_same_leaves(out, want)
         assert not bool(rep.overflow) and rep.host() | {"capacity": 0} == F.fuse(
             m1, m2, rule, weights=weights, capacity=CAP_OUT, return_report=True)[1].host() | {"capacity": 0}
@@ -272,6 +272,34 @@ def test_report_counts_cases():
     assert r["split"] == [1, 1]
     assert not r["overflow"]
     assert r["refined_cells"] == out.num_leaves + r["pruned"]
+
+
+def test_short_list_of_leaves_with_gaps(monkeypatch):
+    # the pair kernel lists the leaves with gaps in fewer rows than their gap cells (each has
+    # at least one): a list too short for the leaves, while the cells fit, is an overflow
+    # under jit and re-runs larger on the host
+    m1, m2 = pair(3)
+    want = ref_fuse([m1, m2], "sum", (1.0, 1.0))
+    one, mode = jnp.float32(1), jnp.int32(0)
+    full, rep, (n_gap, n_leaves) = F._fuse_pair(m1, m2, one, one, mode, CAP_OUT, True, gap_capacity=GAP_CAP)
+    assert 1 < int(n_leaves) <= int(n_gap) <= GAP_CAP and not bool(rep.overflow)
+    assert_same_leaves(full, want)
+    _, short, (_, n_short) = F._fuse_pair(m1, m2, one, one, mode, CAP_OUT, True, gap_capacity=GAP_CAP,
+                                          gap_leaves=1)
+    assert bool(short.overflow) and int(n_short) == int(n_leaves)
+    calls = []
+    kernel = F._fuse_pair
+
+    def spy(*args, **kw):
+        calls.append(kw["gap_leaves"])
+        return kernel(*args, **kw)
+
+    monkeypatch.setattr(F, "_GAP_MIN", 1)
+    monkeypatch.setattr(F, "_GAP_LEAF_SHARE", CAP_OUT)  # a 1-row default list
+    monkeypatch.setattr(F, "_fuse_pair", spy)
+    out, rep = F.fuse(m1, m2, capacity=CAP_OUT, return_report=True)
+    assert calls == [1, omap.bucket_capacity(int(n_leaves))] and not bool(rep.overflow)
+    assert_same_leaves(out, want)
 
 
 def test_deep_split_is_local_and_reprunes():
