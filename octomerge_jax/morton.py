@@ -421,8 +421,9 @@ def merge_ranks(ah, al, bh, bl, counts=None):
     """
     ca, cb = ah.shape[0], bh.shape[0]
     key, rank = (x.reshape(-1) for x in _merge_scan(ah, al, bh, bl, counts))
-    lt_a = jnp.zeros((ca,), jnp.int32).at[jnp.where(key >= 0, key, ca)].set(rank, mode="drop")
-    le_b = jnp.zeros((cb,), jnp.int32).at[jnp.where(key < 0, ~key, cb)].set(rank, mode="drop")
+    # one scatter into both lists' ranks, a's rows then b's (~Cb, "none", lands past them)
+    ranks = jnp.zeros((ca + cb,), jnp.int32).at[jnp.where(key >= 0, key, ca + ~key)].set(rank, mode="drop")
+    lt_a, le_b = ranks[:ca], ranks[ca:]
     if counts is not None:
         na, nb = counts
         lt_a = jnp.where(jnp.arange(ca) < na, lt_a, nb)
