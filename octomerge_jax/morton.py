@@ -415,7 +415,7 @@ def merge_ranks(ah, al, bh, bl, counts=None):
     """Merge two sorted code lists ``a (Ca,)``, ``b (Cb,)`` (word columns; ties: ``a`` first):
     returns ``(#b < a_i, #a <= b_j)``, each element's rank in the other list.
 
-    Merge path, no sort (``_merge_scan``); one scatter per list puts the ranks in place.
+    Merge path, no sort (``_merge_scan``); one scatter puts both lists' ranks in place.
     ``counts=(na, nb)``: the valid rows (padding ``(SENTINEL_HI, 0)`` after them); only those
     are merged, and padding rows get the ranks a full merge gives them (``nb``, ``Ca``).
     """
