@@ -930,7 +930,7 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
 
     Speed on 2 CPU cores (``benchmarks/bench_fuse.py``): 1.2-1.7x faster than the fold for
     m = 4 / 8 maps that each overlap their neighbours; when all m maps cover the same volume,
-    the fold of ``fuse`` is faster (``fuse_many`` takes 1.2-1.4x its time at m = 4 / 8).
+    the fold of ``fuse`` is faster (``fuse_many`` takes 1.2-1.8x its time at m = 4 / 8).
     """
     maps = list(maps)
     if not maps:
