@@ -799,6 +799,8 @@ def _sized_gaps(kernel, cap: int, traced: bool, gap_capacity):
     leaves = None
     if not traced:
         gap_capacity = default_gap_capacity(cap) if gap_capacity is None else gap_capacity
+        if gap_capacity is not None and gap_capacity >= cap:
+            gap_capacity = None  # no shorter than the output: the per-slot layout, never short
         leaves = None if gap_capacity is None else min(gap_capacity, default_gap_leaves(cap))
     out, rep, (n_gap, n_leaves) = kernel(cap, gap_capacity, leaves)
     # the cell count is exact when the list held every leaf with gaps, else a lower bound
@@ -873,9 +875,9 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
         does not know, thesis case 1 inside cases 3 / 4; rare in practice), and for the
         leaves that have them. ``None``: on the host ``max(capacity / 8, 512)`` (the leaves:
         half that), re-run with room for all when there are more; under ``jit``/``vmap``
-        room for all (every leaf,
-        ``capacity`` cells: never short, slower). A value that proves too small under ``jit``
-        sets ``overflow`` (``refined_cells`` is then a lower bound).
+        room for all (every leaf, ``capacity`` cells: never short, slower). A value that
+        proves too small under ``jit`` sets ``overflow`` (``refined_cells`` is then a lower
+        bound).
 
     Returns the fused ``OccupancyMap`` (capacity ``capacity``), or ``(map, report)``.
     Raises ``ValueError`` (host) for different resolutions, an unknown rule, or an overflow
