@@ -520,6 +520,19 @@ def _gap_entries(sides, rows: int):
                 missed=jnp.maximum(found[-1] - rows, 0).astype(jnp.int32))
 
 
+def _gap_cell_once(gate, bounds, t):
+    """``_gap_cell`` of the intervals ``bounds() = (s_hi, s_lo, e_hi, e_lo)`` (a function:
+    its gathers run inside), the bounds and the cells' closed form computed once into memory
+    (``_materialize`` on a traced True ``gate``): fused into each consumer (the code, depth
+    and value scatters), XLA computed them again per consumer (robots pairs 1.04-1.08x)."""
+    def once():
+        b = bounds()
+        return b + (_gap_cell_info(*b, t),)
+
+    *b, info = _materialize(gate, once)
+    return _cell_code(*b, info)
+
+
 def _pair_gap_cells(g, first, emits, code, depth, val, capacity: int, rows: int):
     """Write the gap cells of the leaves in ``g`` (``_gap_entries``) at their slots: the gap
     before a listed leaf from its first slot ``first``, the gap after it after its own cell
@@ -533,15 +546,8 @@ def _pair_gap_cells(g, first, emits, code, depth, val, capacity: int, rows: int)
     bef = t < nb_e
     tt = jnp.where(bef, t, t - nb_e)
     gap = g["gap"]
-
-    # computed once into memory: fused into each consumer (the code and depth scatters),
-    # XLA recomputed the closed form per consumer (robots pairs 1.04-1.08x)
-    def cell_of():
-        sh, sl, eh, el = (jnp.where(bef, gap[k][e], gap[k + 4][e]) for k in range(4))
-        return sh, sl, eh, el, _gap_cell_info(sh, sl, eh, el, tt)
-
-    sh, sl, eh, el, info = _materialize(n_cells >= 0, cell_of)
-    ch, cl, cd = _cell_code(sh, sl, eh, el, info)
+    ch, cl, cd = _gap_cell_once(n_cells >= 0, lambda: tuple(
+        jnp.where(bef, gap[k][e], gap[k + 4][e]) for k in range(4)), tt)
     slot = first[e] + jnp.where(bef, t, nb_e + emits[e] + tt)
     dst = jnp.where(q < n_cells, slot, capacity)
     code = code.at[dst].set(jnp.stack([ch, cl], -1), mode="drop")
@@ -637,9 +643,7 @@ def _gap_cells(capacity: int, gap_capacity: int, gaps):
     slot, n, sh, sl, eh, el, v = fields
     n = jnp.where(r < nonempty[-1], n, 0)
     g, t, n_cells = _cell_owners(n, gcap)  # the gap of each gap cell
-    sh, sl, eh, el, info = _materialize(n_cells >= 0, lambda: (
-        sh[g], sl[g], eh[g], el[g], _gap_cell_info(sh[g], sl[g], eh[g], el[g], t)))
-    ch, cl, cd = _cell_code(sh, sl, eh, el, info)
+    ch, cl, cd = _gap_cell_once(n_cells >= 0, lambda: (sh[g], sl[g], eh[g], el[g]), t)
     dst = jnp.where(r < n_cells, slot[g] + t, cap)
     code, depth, val = tree._padding(cap)
     return (code.at[dst].set(jnp.stack([ch, cl], -1), mode="drop"),
