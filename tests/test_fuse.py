@@ -536,3 +536,51 @@ def test_one_pass_prune_equals_reference(seed):
     got = tree.prune(m)
     lv = m.leaves()
     assert_same_leaves(got, ref_prune(lv.codes, lv.depths, lv.log_odds))
+
+
+def test_scanned_octomap_trees_against_octomap_updates(tmp_path):
+    """Two robots' maps built by OctoMap itself (pyoctomap ``insertPointCloud`` of simulated
+    lab scans), written as ``.bt`` (map 1, maximum likelihood) and ``.ot`` (map 2, full
+    log-odds), read back, map 2 resampled into map 1's frame: ``fuse`` equals OctoMap
+    reading map 1 and applying each finest voxel of the resampled map 2 with
+    ``updateNode(point, log_odds)`` (one update per voxel, so OctoMap clamps once, as
+    ``fuse``), which prunes as it goes. Real tree layouts: pruned free space at several
+    depths, split leaves on both sides, gaps."""
+    pyoctomap = pytest.importorskip("pyoctomap")
+    import octomerge_jax as om
+    from octomerge_jax.sim import DepthCamera
+    from octomerge_jax.sim.datasets import simulate_runs
+
+    res = 0.1
+    run1, run2, T_1_2 = simulate_runs("lab", sensor=DepthCamera(width=64, height=48), seed=2)
+    paths = []
+    for k, run in enumerate((run1, run2)):
+        t = pyoctomap.OcTree(res)
+        for pts, T in zip(run.scans, np.asarray(run.poses_map_sensor, np.float64)):
+            cloud = np.asarray(pts, np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+            t.insertPointCloud(np.ascontiguousarray(cloud), np.ascontiguousarray(T[:3, 3]))
+        paths.append(str(tmp_path / ("m1.bt" if k == 0 else "m2.ot")))
+        (t.writeBinary if k == 0 else t.write)(paths[-1])
+    m1 = om.load(paths[0])
+    m2 = om.transform_map(om.load(paths[1]), T_1_2)
+    out, rep = F.fuse(m1, m2, return_report=True)
+    assert not bool(rep.overflow) and m1.num_leaves > 10000 and m2.num_leaves > 10000
+    assert int(rep.split[0]) > 0 and int(rep.split[1]) > 0  # both maps have coarser leaves split
+
+    ot = pyoctomap.OcTree(res)
+    ot.readBinary(paths[0])
+    lv = m2.leaves()
+    for center, depth, val in zip(lv.centers, lv.depths, lv.log_odds):
+        r = np.arange(1 << (16 - int(depth)))
+        off = (np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3) - (r.size - 1) / 2) * res
+        for p in off + center:
+            ot.updateNode(np.asarray(p, np.float64), float(val))
+    got = {}
+    for it in ot.begin_leafs():
+        coord = np.asarray(it.getCoordinate(), np.float64)
+        got[(tuple(np.round(coord / (res / 2)).astype(int)), int(it.getDepth()))] = np.float32(
+            ot.search(coord).getLogOdds())
+    ours = out.leaves()
+    assert len(got) == ours.codes.size
+    for center, depth, val in zip(ours.centers, ours.depths, ours.log_odds):
+        assert got[(tuple(np.round(center / (res / 2)).astype(int)), int(depth))] == val
