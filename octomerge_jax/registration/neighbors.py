@@ -91,10 +91,10 @@ def level_table_sizes(capacity: int, cell_sizes) -> tuple[int, ...]:
     points' cells span at most that many, else hashed, and then cells sharing a bucket
     overflow when together they hold more than ``cell_capacity`` points (a cell holds up to 8
     voxel centres at cell = 2 voxels). Measured with ``merge`` on the simulated maps: no
-    overflow at lab 0.1 m and office 0.05 m; 437 points dropped at lab 0.05 m (maps of 16.7k /
-    17.2k occupied voxels), eps_t still 0.016 m (``grid_overflow`` reports them). A level ``r`` times
-    coarser needs about ``r^2`` times fewer cells on surfaces, so it gets ``4 capacity / r^2``
-    (>= 256)."""
+    overflow at lab 0.1 m and office 0.05 m; 437 points dropped at lab 0.05 m (maps of
+    16.7k / 17.2k occupied voxels), eps_t still 0.016 m (``grid_overflow`` reports them).
+    A level ``r`` times coarser needs about ``r^2`` times fewer cells on surfaces, so it gets
+    ``4 capacity / r^2`` (>= 256)."""
     sizes = np.asarray(cell_sizes, np.float64).reshape(-1)
     finest = float(np.min(sizes))
     return tuple(grid_table_size(capacity, 4.0 / (float(c) / finest) ** 2) for c in sizes)
