@@ -1112,18 +1112,26 @@ def _many_emit(plan, maps, w, mode, capacity: int, do_prune: bool, gap_capacity:
     n_known = jnp.sum(known.astype(jnp.int32))
     if capacity < n_b:
         r = jnp.arange(capacity, dtype=jnp.int32)
+        n_before = _cumsum(known.astype(jnp.int32))
         at = jnp.full((capacity,), n_b - 1, jnp.int32).at[
-            jnp.where(known, _cumsum(known.astype(jnp.int32)) - 1, capacity)].set(q, mode="drop")
+            jnp.where(known, n_before - 1, capacity)].set(q, mode="drop")
         pick = lambda x: x[at]  # noqa: E731
         on_list = r < n_known
+        shows = n_before - known.astype(jnp.int32)  # the list row of the first known row >= q
     else:  # no fewer rows than the list itself: every row stays
-        r, pick, on_list = q, lambda x: x, known  # noqa: E731
+        r, pick, on_list, shows = q, lambda x: x, known, q  # noqa: E731
     level_k = jnp.where(on_list, pick(level), 0)
+    # the leaf at nesting level L on list row i is the last start that opened level L at or
+    # before it (a later one would lie inside it): every start put once in level L's row of
+    # a (m, list) table at the list row where it first shows, then one cumulative max per
+    # level present (1-2 for maps that overlap pairwise; at most m) over the list, not over
+    # the whole boundary list
+    opened = jnp.full((m, r.shape[0]), -1, jnp.int32).at[
+        jnp.where(is_start & (level >= 1), level - 1, m), shows].max(q, mode="drop")
 
     def open_level(lv, rows):
         """``rows[k]``: map k's leaf row on every known interval (-1 where it has none)."""
-        s = jnp.maximum(_cummax(jnp.where(is_start & (level == lv), q, -1)), 0)
-        row = bidx[pick(s)]
+        row = bidx[jnp.maximum(_cummax(opened[lv - 1]), 0)]
         return rows.at[jnp.where(level_k >= lv, _map_of(maps, row), m), r].set(row, mode="drop")
 
     rows = jax.lax.fori_loop(1, jnp.max(level) + 1, open_level,
