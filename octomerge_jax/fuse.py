@@ -934,7 +934,7 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
     in its own capacity bucket; under ``jit`` / ``vmap`` the lists have twice each map's
     capacity (always enough).
 
-    Speed on 2 CPU cores (``benchmarks/bench_fuse.py``): 1.2-1.45x faster than the fold for
+    Speed on 2 CPU cores (``benchmarks/bench_fuse.py``): 1.1-1.5x faster than the fold for
     m = 4 / 8 maps that each overlap their neighbours; when all m maps cover the same volume,
     the fold of ``fuse`` is faster (``fuse_many`` takes 1.2-1.4x its time at m = 4 / 8).
     """
