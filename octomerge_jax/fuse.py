@@ -1065,9 +1065,7 @@ def _many_plan(maps, list_sizes: tuple[int, ...]):
     # 2. nesting: the leaves covering [b_q, b_{q+1}) are nested (aligned cells); level[q] of
     #    them are open after row q (ends, explicit or implied by a start, before starts at a
     #    position: the implied ends of a position's later starts are taken off the earlier
-    #    ones). The leaf at nesting level L is the last start at or before q that opened
-    #    level L (a later one would lie inside it): one cumulative max per level present (1-2
-    #    for maps that overlap pairwise; at most m), not one per map.
+    #    ones). (Which leaf is open at each level: ``_many_emit``.)
     last_row = (bh != nh) | (bl != nl)  # last row of its position
     group_end = _cummin(jnp.where(last_row, q, n_b - 1), reverse=True)
     n_implied = _cumsum(implied.astype(jnp.int32))
@@ -1124,8 +1122,8 @@ def _many_emit(plan, maps, w, mode, capacity: int, do_prune: bool, gap_capacity:
     # the leaf at nesting level L on list row i is the last start that opened level L at or
     # before it (a later one would lie inside it): every start put once in level L's row of
     # a (m, list) table at the list row where it first shows, then one cumulative max per
-    # level present (1-2 for maps that overlap pairwise; at most m) over the list, not over
-    # the whole boundary list
+    # level present (1-2 for maps that overlap pairwise; at most m, not one per map) over
+    # the list, not over the whole boundary list
     opened = jnp.full((m, r.shape[0]), -1, jnp.int32).at[
         jnp.where(is_start & (level >= 1), level - 1, m), shows].max(q, mode="drop")
 
