@@ -23,11 +23,15 @@ import statistics
 import time
 
 import jax
+import functools
+
 import numpy as np
 
 from octomerge_jax import tree
 from octomerge_jax.registration import dense, metrics, overlap
-from octomerge_jax.registration._testing import surface_samples, xyz_rpy64
+from octomerge_jax.sim import surface_samples
+from octomerge_jax import se3
+xyz_rpy64 = functools.partial(se3.from_xyz_rpy, xp=np)  # float64 ground truth
 
 icp_mod = importlib.import_module("octomerge_jax.registration.icp")
 

@@ -27,12 +27,17 @@ import time
 import _host_memory
 import jax
 import jax.numpy as jnp
+import functools
+
 import numpy as np
 from scipy.spatial import cKDTree
 
-from octomerge_jax.registration import metrics, overlap, rigid
+from octomerge_jax import se3 as rigid
+from octomerge_jax.registration import metrics, overlap
 from octomerge_jax.registration._solver import _jaxopt
-from octomerge_jax.registration._testing import scene_pair, xyz_rpy64
+from octomerge_jax.sim import scene_pair
+from octomerge_jax import se3
+xyz_rpy64 = functools.partial(se3.from_xyz_rpy, xp=np)  # float64 ground truth
 
 icp_mod = importlib.import_module("octomerge_jax.registration.icp")
 

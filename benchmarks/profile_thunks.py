@@ -22,6 +22,8 @@ import json
 import tempfile
 
 import jax
+import functools
+
 import numpy as np
 
 
@@ -29,7 +31,9 @@ def _icp_call(args):
     import importlib
 
     from octomerge_jax.registration import overlap
-    from octomerge_jax.registration._testing import scene_pair, xyz_rpy64
+    from octomerge_jax.sim import scene_pair
+    from octomerge_jax import se3
+    xyz_rpy64 = functools.partial(se3.from_xyz_rpy, xp=np)  # float64 ground truth
 
     icp = importlib.import_module("octomerge_jax.registration.icp")  # the package re-exports the function
 

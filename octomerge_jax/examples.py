@@ -11,7 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .io import load
 from .map import OccupancyMap, OccupancyParams, logit
+from .tree import from_voxels
 
 __all__ = ["example_map", "example_map_path", "make_example_room"]
 
@@ -25,8 +27,6 @@ def example_map_path() -> Path:
 
 def example_map() -> OccupancyMap:
     """The shipped example: a 6 x 4 x 2.5 m room with four boxes at 0.1 m resolution."""
-    from .io import load
-
     return load(example_map_path())
 
 
@@ -39,8 +39,6 @@ def make_example_room(resolution: float = 0.1) -> OccupancyMap:
     """A room ``[-3, 3] x [-2, 2] x [0, 2.5]`` m: floor and walls occupied (log-odds of the
     clamp max), four boxes occupied, the air observed free (log-odds -1.2), the ceiling
     unknown. Built with ``tree.from_voxels`` (finest voxels, then pruned maximally)."""
-    from .tree import from_voxels
-
     r = resolution
     inside_lo, inside_hi = np.array([-3.0, -2.0, 0.0]), np.array([3.0, 2.0, 2.5])
     shell = _grid(inside_lo - [r, r, r], inside_hi + [r, r, 0.0], r)

@@ -81,6 +81,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import morton, tree
+from ._ops import cummax, cummin, cumsum, float_bits, is_traced, materialize, padding_rows
 from .map import OccupancyMap, bucket_capacity
 
 __all__ = ["RULES", "FuseReport", "fuse", "fuse_many"]
@@ -322,14 +323,9 @@ def _check_rule(rule):
         raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
 
 
-def _is_traced(*xs) -> bool:
-    return any(isinstance(x, jax.core.Tracer) for x in xs)
-
-
 # ----------------------------------------------------------------------------- scans, merge
 
 
-_cumsum, _cummax, _cummin, _materialize = tree._cumsum, tree._cummax, tree._cummin, tree._materialize
 
 
 def _shift_down(x, fill):
@@ -343,10 +339,6 @@ def _shift_up(x, fill):
 
 
 # ----------------------------------------------------------------------------- pair kernel
-
-
-def _bits(x):
-    return jax.lax.bitcast_convert_type(x.astype(jnp.float32), jnp.int32)
 
 
 def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, lo_c, hi_c):
@@ -367,7 +359,7 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     jc = jnp.clip(j, 0, cb - 1)
     jn = jnp.clip(j + 1, 0, cb - 1)
     gate = na >= 0
-    bh, bl, bd, bv, bnh, bnl = _materialize(gate, lambda: (
+    bh, bl, bd, bv, bnh, bnl = materialize(gate, lambda: (
         B.code[jc, 0], B.code[jc, 1], B.depth[jc], B.log_odds[jc], B.code[jn, 0], B.code[jn, 1]))
     beh, bel = _end(bh, bl, bd)
     cov = valid & (j >= 0) & (j < nb) & _less(ah, al, beh, bel)
@@ -376,7 +368,7 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     finer_at_start = cov & (bd > A.depth)
     next_inside = (j + 1 < nb) & _less(bnh, bnl, aeh, ael)
     split = valid & (finer_at_start | (~cov & next_inside))
-    self_emit = _materialize(gate, lambda: valid & ~split & ~(equal & (not first)))
+    self_emit = materialize(gate, lambda: valid & ~split & ~(equal & (not first)))
 
     va = A.log_odds
     both = _combine(rule, va, bv, w_a, w_b) if first else _combine(rule, bv, va, w_b, w_a)
@@ -388,10 +380,10 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, rule, w_a, w_b, l
     # (``same``) and it is inside a B leaf; it starts where leaf k ends (``contig``).
     same = le_b[1:] == le_b[:-1]
     contig = (ah[1:] == aeh[:-1]) & (al[1:] == ael[:-1])
-    link = _materialize(gate, lambda: (same.astype(jnp.int8) | jnp.left_shift(contig.astype(jnp.int8), 1)
+    link = materialize(gate, lambda: (same.astype(jnp.int8) | jnp.left_shift(contig.astype(jnp.int8), 1)
                                        | jnp.left_shift((same & inside_b[1:]).astype(jnp.int8), 2)))
     zero = jnp.zeros((1,), jnp.int8)
-    prev, nxt = _materialize(gate, lambda: (jnp.concatenate([zero, link]), jnp.concatenate([link, zero])))
+    prev, nxt = materialize(gate, lambda: (jnp.concatenate([zero, link]), jnp.concatenate([link, zero])))
     # before: from the previous leaf's end if it lies in the same B leaf, else from B's start
     gap_before = jnp.where((prev & 1) == 1, (prev & 2) == 0, (bh != ah) | (bl != al))
     gap_after = ((nxt & 4) == 0) & ((beh != aeh) | (bel != ael))  # A's last leaf in B's
@@ -430,14 +422,14 @@ def _pair_cells(sides, rows: int, with_gaps: bool):
     back, ``after[k]`` the cells after each leaf; else ``g`` is ``None``, ``after`` zeros."""
     emit = [s["self_emit"].astype(jnp.int32) for s in sides]
     if not with_gaps:
-        return tuple(_cumsum(e) for e in emit), None, (0, 0)
+        return tuple(cumsum(e) for e in emit), None, (0, 0)
     g = _gap_entries(sides, rows)
     cells, after = [], []
     for k, e in enumerate(emit):
         packed = _to_leaves(g, k, e.shape[0], g["nb"] | jnp.left_shift(g["na"], 16))
         after.append(jnp.right_shift(packed, 16))
         cells.append((packed & 0xFFFF) + e + after[-1])
-    return tuple(_cumsum(c) for c in cells), g, tuple(after)
+    return tuple(cumsum(c) for c in cells), g, tuple(after)
 
 
 def _to_leaves(g, k, n: int, x):
@@ -457,7 +449,7 @@ def _pair_write(maps, emit, vals, before, p, g, after, capacity: int, cell_rows:
     gap cells of side 0)``; the total is a lower bound when ``g`` missed leaves."""
     excl = [_excl_at(p[1 - k], before[k]) for k in range(2)]  # the other side's cells before
     total = p[0][-1] + p[1][-1]
-    code, depth, val = tree._padding(capacity)
+    code, depth, val = padding_rows(capacity)
     n_gap = new = jnp.int32(0)
     if g is None:
         after = (0, 0)
@@ -493,7 +485,7 @@ def _gap_entries(sides, rows: int):
     # blocks' prefix count (n / 32 entries), then its bit by popcounts of the mask
     bit = jnp.left_shift(jnp.uint32(1), jnp.arange(32, dtype=jnp.uint32))
     mask = jnp.sum(jnp.where(flags.reshape(-1, 32), bit, jnp.uint32(0)), axis=1, dtype=jnp.uint32)
-    found = _cumsum(jax.lax.population_count(mask).astype(jnp.int32))
+    found = cumsum(jax.lax.population_count(mask).astype(jnp.int32))
     r = jnp.arange(rows, dtype=jnp.int32)
     blk = jnp.minimum(jnp.searchsorted(found, r, side="right", method="scan"), found.shape[0] - 1)
     k = (r - _excl_at(found, blk)).astype(jnp.uint32)  # the flag's rank in its block
@@ -514,7 +506,7 @@ def _gap_entries(sides, rows: int):
         gap = tuple(jnp.where(side == 1, b, a) for a, b in zip(*per_side))
         return gap, jnp.where(ok, _gap_plan(*gap[0:4]), 0), jnp.where(ok, _gap_plan(*gap[4:8]), 0)
 
-    gap, nb, na = _materialize(found[-1] >= 0, gaps)
+    gap, nb, na = materialize(found[-1] >= 0, gaps)
     return dict(side=side, i=i, at=at, ok=ok, gap=gap, nb=nb, na=na,
                 leaves=found[-1].astype(jnp.int32),
                 missed=jnp.maximum(found[-1] - rows, 0).astype(jnp.int32))
@@ -529,7 +521,7 @@ def _gap_cell_once(gate, bounds, t):
         b = bounds()
         return b + (_gap_cell_info(*b, t),)
 
-    *b, info = _materialize(gate, once)
+    *b, info = materialize(gate, once)
     return _cell_code(*b, info)
 
 
@@ -569,7 +561,7 @@ def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth,
     (``_gap_cells``; more is an overflow the caller reports), not on every slot.
     """
     if not gaps:
-        code, depth, val = tree._padding(capacity)
+        code, depth, val = padding_rows(capacity)
         return _put_selfs(code, depth, val, selfs, total, capacity, params, resolution, tree_depth)
     if gap_capacity is not None and gap_capacity < capacity:
         code, depth, val = _gap_cells(capacity, gap_capacity, gaps)
@@ -578,13 +570,13 @@ def _emit(capacity: int, total, selfs, gaps, params, resolution, tree_depth,
     gap_rows = jnp.zeros((cap, 6), jnp.int32)  # s_hi, s_lo, e_hi, e_lo, value, start slot + 1
     for slot, n, sh, sl, eh, el, v in gaps:
         slot = jnp.where(n > 0, slot, cap)
-        gap_rows = gap_rows.at[slot].set(jnp.stack([sh, sl, eh, el, _bits(v), slot + 1], -1),
+        gap_rows = gap_rows.at[slot].set(jnp.stack([sh, sl, eh, el, float_bits(v), slot + 1], -1),
                                          mode="drop")
     q = jnp.arange(cap, dtype=jnp.int32)
-    start = _cummax(gap_rows[:, 5]) - 1
+    start = cummax(gap_rows[:, 5]) - 1
     g = gap_rows[jnp.maximum(start, 0)]
     g0, g1, g2, g3 = g[:, 0], g[:, 1], g[:, 2], g[:, 3]
-    info = _materialize(total >= 0, lambda: _gap_cell_info(g0, g1, g2, g3, q - start))
+    info = materialize(total >= 0, lambda: _gap_cell_info(g0, g1, g2, g3, q - start))
     ch, cl, cd = _cell_code(g0, g1, g2, g3, info)
     ok = q < total
     code = jnp.stack([jnp.where(ok, ch, _SENT), jnp.where(ok, cl, 0)], -1)
@@ -608,10 +600,10 @@ def _cell_owners(n, rows: int):
     """Cells laid out owner after owner (owner ``k`` has ``n[k]`` of them, in order), in a
     list of ``rows``: ``(owner, index within the owner, cells in all)`` per row, by a
     cumulative max over the owners' first rows (rows past the cells repeat the last owner)."""
-    first = _cumsum(n) - n  # the owner's first row
+    first = cumsum(n) - n  # the owner's first row
     mark = jnp.zeros((rows,), jnp.int32).at[jnp.where(n > 0, first, rows)].set(
         jnp.arange(n.shape[0], dtype=jnp.int32) + 1, mode="drop")
-    owner = jnp.maximum(_cummax(mark) - 1, 0)
+    owner = jnp.maximum(cummax(mark) - 1, 0)
     return owner, jnp.arange(rows, dtype=jnp.int32) - first[owner], first[-1] + n[-1]
 
 
@@ -629,7 +621,7 @@ def _gap_cells(capacity: int, gap_capacity: int, gaps):
     cap, gcap = capacity, gap_capacity
     lens = [g[1].shape[0] for g in gaps]
     offs = np.cumsum([0] + lens)
-    nonempty = _cumsum(jnp.concatenate([(g[1] > 0).astype(jnp.int32) for g in gaps]))
+    nonempty = cumsum(jnp.concatenate([(g[1] > 0).astype(jnp.int32) for g in gaps]))
     r = jnp.arange(gcap, dtype=jnp.int32)
     gi = jnp.searchsorted(nonempty, r, side="right", method="scan").astype(jnp.int32)
     which = sum((gi >= int(o)).astype(jnp.int32) for o in offs[1:-1])
@@ -645,7 +637,7 @@ def _gap_cells(capacity: int, gap_capacity: int, gaps):
     g, t, n_cells = _cell_owners(n, gcap)  # the gap of each gap cell
     ch, cl, cd = _gap_cell_once(n_cells >= 0, lambda: (sh[g], sl[g], eh[g], el[g]), t)
     dst = jnp.where(r < n_cells, slot[g] + t, cap)
-    code, depth, val = tree._padding(cap)
+    code, depth, val = padding_rows(cap)
     return (code.at[dst].set(jnp.stack([ch, cl], -1), mode="drop"),
             depth.at[dst].set(cd, mode="drop"), val.at[dst].set(v[g], mode="drop"))
 
@@ -707,7 +699,7 @@ def _fuse_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, rule, capacity: int, 
     out, total, n_gap, new_gap_cells, n_gap_leaves = jax.lax.cond(
         sides[0]["any_gap"] | sides[1]["any_gap"], lambda: lay(True), lambda: lay(False))
     if do_prune:
-        out = tree._prune_runs(out)
+        out = tree.prune_runs(out)
     overflow = (total > capacity) | ((n_gap > gap_capacity) | (n_gap_leaves > rows) if compact else False)
     rep = _pair_report(m1, m2, [s["stats"] for s in sides], total, out, new_gap_cells, overflow, capacity)
     return out, rep, (n_gap, n_gap_leaves)
@@ -744,7 +736,7 @@ def _pair_emit(plan, m1: OccupancyMap, m2: OccupancyMap, capacity: int, cell_row
     out, total, n_gap, new_gap_cells = jax.lax.cond(plan["any_gap"], lambda: lay(True),
                                                     lambda: lay(False))
     if do_prune:
-        out = tree._prune_runs(out)
+        out = tree.prune_runs(out)
     overflow = (total > capacity) | (plan["g"]["missed"] > 0) | (n_gap > cell_rows)
     return out, _pair_report(m1, m2, plan["stats"], total, out, new_gap_cells, overflow, capacity)
 
@@ -901,7 +893,7 @@ def _fuse2(m1, m2, w1, w2, mode, capacity, prune, return_report, gap_capacity, w
     between ``max(n1, n2)`` and ``n1 + n2`` cells (plus gap cells); on the host without a
     ``capacity``, when those bounds lie in different buckets, it is planned first and laid
     out in its own bucket (``_fuse_pair_planned``), else run in one program."""
-    traced = _is_traced(m1.count, m2.count)
+    traced = is_traced(m1.count, m2.count)
     n1, n2 = (0, 0) if traced else (int(m1.count), int(m2.count))
     if capacity is None and not traced and bucket_capacity(max(n1, n2)) < bucket_capacity(n1 + n2):
         out, rep = _fuse_pair_planned(m1, m2, w1, w2, mode, bool(prune), gap_capacity, max(n1, n2))
@@ -948,7 +940,7 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
     if len(weights) != len(maps):
         raise ValueError(f"weights has {len(weights)} entries for {len(maps)} maps")
     w = jnp.asarray(np.asarray(weights, np.float32))
-    traced = _is_traced(*[m.count for m in maps])
+    traced = is_traced(*[m.count for m in maps])
 
     mode = jnp.asarray(_MODE[rule], jnp.int32)
     if len(maps) == 2:  # the pair kernel is the one-pass refinement of two maps
@@ -1002,7 +994,7 @@ def _boundaries(mk: OccupancyMap, row0: int, size: int):
     i = jnp.arange(mk.capacity, dtype=jnp.int32)
     h, l = mk.code[:, 0], mk.code[:, 1]
     implied = _shift_down(valid & ~explicit, False)
-    n_exp = _cumsum(explicit.astype(jnp.int32))
+    n_exp = cumsum(explicit.astype(jnp.int32))
     at_start = jnp.where(valid, i + n_exp - explicit.astype(jnp.int32), size)
     at_end = jnp.where(explicit, i + n_exp, size)
     cols = []
@@ -1050,7 +1042,7 @@ def _many_plan(maps, list_sizes: tuple[int, ...]):
     #    levels, both branches of each (shared m = 8: plan 150 -> 115 ms)
     lists = [_boundaries(mk, int(first_row[k]), list_sizes[k]) for k, mk in enumerate(maps)]
     while len(lists) > 1:
-        nxt = [_materialize(maps[0].count >= 0, lambda i=i: morton.merge_sorted(lists[i], lists[i + 1]))
+        nxt = [materialize(maps[0].count >= 0, lambda i=i: morton.merge_sorted(lists[i], lists[i + 1]))
                for i in range(0, len(lists) - 1, 2)]
         if len(lists) % 2:
             nxt.append(lists[-1])
@@ -1067,10 +1059,10 @@ def _many_plan(maps, list_sizes: tuple[int, ...]):
     #    position: the implied ends of a position's later starts are taken off the earlier
     #    ones). (Which leaf is open at each level: ``_many_emit``.)
     last_row = (bh != nh) | (bl != nl)  # last row of its position
-    group_end = _cummin(jnp.where(last_row, q, n_b - 1), reverse=True)
-    n_implied = _cumsum(implied.astype(jnp.int32))
+    group_end = cummin(jnp.where(last_row, q, n_b - 1), reverse=True)
+    n_implied = cumsum(implied.astype(jnp.int32))
     opens = jnp.where(is_start, 1 - implied.astype(jnp.int32), jnp.where(bidx == -1, -1, 0))
-    level = _cumsum(opens) - (n_implied[group_end] - n_implied)
+    level = cumsum(opens) - (n_implied[group_end] - n_implied)
     known = _less(bh, bl, nh, nl) & (bh < _SENT) & (level > 0)
     # a leaf is exactly one interval iff it ends where its start position's interval ends
     gn = jnp.minimum(group_end + 1, n_b - 1)
@@ -1084,7 +1076,7 @@ def _many_plan(maps, list_sizes: tuple[int, ...]):
     dup = exact & _shift_down(exact, False) & same_leaf  # the previous row is the same leaf
     same_depth = jnp.sum(dup & ~_shift_down(dup, False))  # positions with >= 2 equal leaves
 
-    n_cells = _materialize(maps[0].count >= 0, lambda: jnp.where(known, _gap_plan(bh, bl, nh, nl), 0))
+    n_cells = materialize(maps[0].count >= 0, lambda: jnp.where(known, _gap_plan(bh, bl, nh, nl), 0))
     return dict(bh=bh, bl=bl, nh=nh, nl=nl, bidx=bidx, is_start=is_start, level=level, known=known,
                 n_cells=n_cells, total=jnp.sum(n_cells).astype(jnp.int32),
                 cells_both=jnp.sum(jnp.where(level >= 2, n_cells, 0)).astype(jnp.int32),
@@ -1110,7 +1102,7 @@ def _many_emit(plan, maps, w, mode, capacity: int, do_prune: bool, gap_capacity:
     n_known = jnp.sum(known.astype(jnp.int32))
     if capacity < n_b:
         r = jnp.arange(capacity, dtype=jnp.int32)
-        n_before = _cumsum(known.astype(jnp.int32))
+        n_before = cumsum(known.astype(jnp.int32))
         at = jnp.full((capacity,), n_b - 1, jnp.int32).at[
             jnp.where(known, n_before - 1, capacity)].set(q, mode="drop")
         pick = lambda x: x[at]  # noqa: E731
@@ -1129,7 +1121,7 @@ def _many_emit(plan, maps, w, mode, capacity: int, do_prune: bool, gap_capacity:
 
     def open_level(lv, rows):
         """``rows[k]``: map k's leaf row on every known interval (-1 where it has none)."""
-        row = bidx[jnp.maximum(_cummax(opened[lv - 1]), 0)]
+        row = bidx[jnp.maximum(cummax(opened[lv - 1]), 0)]
         return rows.at[jnp.where(level_k >= lv, _map_of(maps, row), m), r].set(row, mode="drop")
 
     rows = jax.lax.fori_loop(1, jnp.max(level) + 1, open_level,
@@ -1159,7 +1151,7 @@ def _many_emit(plan, maps, w, mode, capacity: int, do_prune: bool, gap_capacity:
     # 4. decompose the known intervals into aligned cells, laid out in order
     bh, bl, nh, nl = (pick(plan[k]) for k in ("bh", "bl", "nh", "nl"))
     n_cells = jnp.where(on_list, pick(plan["n_cells"]), 0)
-    ends = _cumsum(n_cells)
+    ends = cumsum(n_cells)
     total = plan["total"]  # all intervals' cells (those past a short list too)
     value, first = jnp.clip(acc, lo_c, hi_c), ends - n_cells
     compact = gap_capacity is not None and gap_capacity < capacity
@@ -1167,7 +1159,7 @@ def _many_emit(plan, maps, w, mode, capacity: int, do_prune: bool, gap_capacity:
         one = n_cells == 1  # the interval [b, n) is one aligned cell: depth from its size
         dl = nl - bl
         dh = nh - bh - (dl < 0).astype(jnp.int32)
-        size_bit = tree._top_bit(dh, jnp.where(dl < 0, dl + (1 << morton.WORD_BITS), dl))
+        size_bit = morton.top_bit(dh, jnp.where(dl < 0, dl + (1 << morton.WORD_BITS), dl))
         selfs = [(jnp.where(one, first, capacity), jnp.stack([bh, bl], -1), _D - size_bit // 3, value)]
         gaps = [(first, jnp.where(one, 0, n_cells), bh, bl, nh, nl, value)]
     else:
@@ -1176,7 +1168,7 @@ def _many_emit(plan, maps, w, mode, capacity: int, do_prune: bool, gap_capacity:
     out = _emit(capacity, total, selfs, gaps, m0.params, m0.resolution, m0.tree_depth,
                 gap_capacity if compact else None)
     if do_prune:
-        out = tree._prune_runs(out)
+        out = tree.prune_runs(out)
     report = FuseReport(
         leaves_in=counts,
         refined_cells=total,

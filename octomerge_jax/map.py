@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import morton
+from ._ops import MIN_CAPACITY, bucket_capacity
 
 __all__ = [
     "OccupancyParams",
@@ -29,10 +30,9 @@ __all__ = [
     "probability",
     "empty",
     "from_leaves",
+    "from_words",
+    "MIN_CAPACITY",
 ]
-
-MIN_CAPACITY = 256
-
 
 def logit(p) -> np.float32:
     """OctoMap ``logodds(p) = (float) ln(p / (1 - p))``."""
@@ -44,12 +44,6 @@ def probability(log_odds):
     """OctoMap ``probability(l) = 1 - 1 / (1 + exp(l))`` (works on NumPy and JAX arrays)."""
     xp = jnp if isinstance(log_odds, jax.Array) else np
     return 1.0 - 1.0 / (1.0 + xp.exp(log_odds))
-
-
-def bucket_capacity(n: int, minimum: int = MIN_CAPACITY) -> int:
-    """Smallest power of two ``>= max(n, minimum)``: the static capacity for ``n`` rows."""
-    n = max(int(n), int(minimum), 1)
-    return 1 << math.ceil(math.log2(n))
 
 
 @jax.tree_util.register_dataclass
@@ -167,7 +161,7 @@ class OccupancyMap:
         n = self.num_leaves
         if capacity < n:
             raise ValueError(f"capacity {capacity} is smaller than the map's {n} leaves")
-        return _build(np.asarray(self.code)[:n], np.asarray(self.depth)[:n],
+        return from_words(np.asarray(self.code)[:n], np.asarray(self.depth)[:n],
                       np.asarray(self.log_odds)[:n], self.resolution, self.params, capacity)
 
     def __repr__(self) -> str:  # the default would print whole arrays
@@ -186,7 +180,10 @@ def _check_resolution(resolution) -> float:
     return r
 
 
-def _build(words, depths, log_odds, resolution, params, capacity) -> OccupancyMap:
+def from_words(words, depths, log_odds, resolution, params=None, capacity=None) -> OccupancyMap:
+    """A map from sorted leaves given as two-word codes ``words (n, 2) int32`` (``morton.split_codes``),
+    ``depths (n,)``, ``log_odds (n,)``, padded to ``capacity`` (default ``bucket_capacity(n)``).
+    Raises ``ValueError`` if ``capacity < n`` or the resolution is not a positive number of metres."""
     n = int(words.shape[0])
     cap = bucket_capacity(n) if capacity is None else int(capacity)
     if cap < n:
@@ -211,7 +208,7 @@ def _build(words, depths, log_odds, resolution, params, capacity) -> OccupancyMa
 def empty(resolution: float, params: OccupancyParams | None = None,
           capacity: int | None = None) -> OccupancyMap:
     """A map with no leaves (everything unknown)."""
-    return _build(np.zeros((0, 2), np.int32), np.zeros(0, np.int32), np.zeros(0, np.float32),
+    return from_words(np.zeros((0, 2), np.int32), np.zeros(0, np.int32), np.zeros(0, np.float32),
                   resolution, params, capacity)
 
 
@@ -242,4 +239,4 @@ def from_leaves(codes, depths, log_odds, resolution: float,
             raise ValueError("a leaf code exceeds 48 bits")
         if np.any(codes[:-1] + span[:-1] > codes[1:]):
             raise ValueError("leaves overlap: each volume must be covered by at most one leaf")
-    return _build(morton.split_codes(codes), depths, log_odds, resolution, params, capacity)
+    return from_words(morton.split_codes(codes), depths, log_odds, resolution, params, capacity)

@@ -53,6 +53,9 @@ __all__ = [
     "child_index_words",
     "or_offset_words",
     "end_words",
+    "top_bit",
+    "common_depths",
+    "group_sizes",
     "words_less",
     "words_equal",
     "searchsorted_words",
@@ -191,6 +194,38 @@ def leaf_cell_codes(codes, depths, index=None) -> tuple[np.ndarray, np.ndarray]:
     return codes[leaf] + (index - starts[leaf]).astype(np.uint64), leaf
 
 
+# ----------------------------------------------------------------------------- host: tree shape
+
+#: ``_COMMON_DEPTH[b]``: deepest common depth of two codes whose highest differing bit is b.
+_COMMON_DEPTH = np.array([15 - b // 3 for b in range(48)], dtype=np.int64)
+
+
+def common_depths(codes: np.ndarray) -> np.ndarray:
+    """Depth of the deepest common ancestor of consecutive sorted codes, ``(n-1,)`` int64.
+
+    For distinct codes the highest differing bit ``b`` lies in octal digit ``b // 3`` from
+    the bottom, i.e. the codes part below depth ``15 - b // 3``.
+    """
+    x = codes[1:] ^ codes[:-1]
+    if x.size and not x.all():
+        raise ValueError("leaf codes must be distinct")
+    # floor(log2 x) from the float64 exponent bits (exact: 0 < x < 2^48)
+    high_bit = (x.astype(np.float64).view(np.int64) >> 52) - 1023
+    return _COMMON_DEPTH[high_bit]
+
+
+def group_sizes(codes: np.ndarray, depths: np.ndarray) -> np.ndarray:
+    """Per leaf, how many stream records it opens (its new ancestors and itself), ``(n,)``.
+
+    Raises ``ValueError`` if leaves overlap (a leaf inside another's volume).
+    """
+    depths = depths.astype(np.int64)
+    d_common = np.concatenate([[-1], common_depths(codes)])
+    if np.any(d_common[1:] >= np.minimum(depths[1:], depths[:-1])):
+        raise ValueError("leaves overlap: one leaf lies inside another")
+    return depths - d_common
+
+
 # ----------------------------------------------------------------------------- device (JAX)
 
 
@@ -295,6 +330,11 @@ def end_words(words, depth):
     carry = jnp.right_shift(lo, WORD_BITS)
     hi = words[..., 0] + jnp.where(small, carry, jnp.left_shift(1, jnp.maximum(shift - WORD_BITS, 0)))
     return jnp.stack([hi, lo & WORD_MASK], axis=-1)
+
+
+def top_bit(hi, lo):
+    """Highest set bit (0..47) of the 48-bit code ``(hi, lo)`` (24-bit words); -1 for 0."""
+    return jnp.where(hi != 0, 55 - jax.lax.clz(hi), 31 - jax.lax.clz(lo))
 
 
 def words_less(a, b):

@@ -51,6 +51,7 @@ import numpy as np
 
 from . import morton, tree
 from .map import OccupancyMap, bucket_capacity
+from .se3 import check_rigid
 
 __all__ = [
     "METHODS",
@@ -95,14 +96,12 @@ def check_rigid_transform(T, name: str = "T_dst_src") -> np.ndarray:
     """Validate one rigid transform and return it as a ``(4, 4)`` float64 array.
 
     Accepts ``(4, 4)`` homogeneous or ``(3, 4)`` ``[R | t]`` matrices (translation in metres).
-    A thin adapter over ``registration.rigid.check_rigid`` (the one implementation; tolerance
+    A thin adapter over ``se3.check_rigid`` (the one implementation; tolerance
     1e-4): raises ``ValueError`` naming ``name`` for another shape (including a batch), a NaN
     or infinite entry, a homogeneous row other than ``[0, 0, 0, 1]``, or a rotation block that
     is not orthonormal with determinant +1 (scale, shear and reflections are rejected). The
     returned homogeneous row is exactly ``[0, 0, 0, 1]``.
     """
-    from .registration.rigid import check_rigid  # registration imports this module
-
     A = np.asarray(T, dtype=np.float64)
     if A.shape == (3, 4):
         A = np.vstack([A, [0.0, 0.0, 0.0, 1.0]])

@@ -17,13 +17,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import morton
+from ._ops import bucket_capacity, cummax, cummin, cumsum, materialize, padding_rows, shift_down, shift_up
 from ._sort import lexsort_rows
-from .map import OccupancyMap, OccupancyParams, _build, bucket_capacity
+from .map import OccupancyMap, OccupancyParams, from_words
 
 __all__ = [
     "lookup",
     "lookup_words",
     "prune",
+    "prune_runs",
     "expand",
     "clamp",
     "to_max_likelihood",
@@ -74,104 +76,23 @@ def lookup(m: OccupancyMap, points):
 # ----------------------------------------------------------------------------- prune
 
 
-def _shift_up(x, k, fill):
-    """``y[i] = x[i + k]`` (rows past the end take ``fill``)."""
-    pad = jnp.full((k,) + x.shape[1:], fill, x.dtype)
-    return jnp.concatenate([x[k:], pad], axis=0)
-
-
-def _shift_down(x, k, fill):
-    """``y[i] = x[i - k]``."""
-    pad = jnp.full((k,) + x.shape[1:], fill, x.dtype)
-    return jnp.concatenate([pad, x[:-k]], axis=0)
-
-
-def _materialize(gate, fn):
-    """``fn()`` (an array or a tuple of arrays) computed once into memory: inside a
-    ``lax.cond`` on ``gate``, a traced True, so XLA cannot fuse (and so recompute) its ops
-    into each consumer, e.g. into every level of a scan (an ``optimization_barrier`` does not
-    survive XLA's CPU pipeline). Computed inside the branch, the result is written straight
-    to the conditional's buffer (finished arrays passed in would be copied). A performance
-    hint only; under ``vmap`` it becomes a select."""
-    shapes = jax.eval_shape(fn)
-    return jax.lax.cond(gate, fn, lambda: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes))
-
-
-_SCANS = {"add": (jax.lax.cumsum, jnp.add, 0),
-          "max": (jax.lax.cummax, jnp.maximum, np.iinfo(np.int32).min),
-          "min": (jax.lax.cummin, jnp.minimum, np.iinfo(np.int32).max)}
-
-
-def _scan(kind, x, reverse=False, block=4):
-    """Inclusive scan of int32 ``x`` along axis 0 in blocks: ``lax.cum*`` inside blocks of
-    ``block`` rows, the block totals scanned recursively. On the CPU about as fast as
-    ``associative_scan`` with a fraction of its compiled size, and several times faster than
-    one ``lax.cum*`` over the whole array. Blocks of 4 rather than 8: the pair fuse 1.10x
-    (small and medium pairs, same process, identical output; 2 and 16 were slower)."""
-    if reverse:
-        return _scan(kind, x[::-1], block=block)[::-1]
-    cum, op, ident = _SCANS[kind]
-    n = x.shape[0]
-    if n <= block or n % block:
-        return cum(x, axis=0)
-    within = cum(x.reshape((n // block, block) + x.shape[1:]), axis=1)
-    total = _scan(kind, within[:, -1], block=block)
-    carry = jnp.concatenate([jnp.full((1,) + x.shape[1:], ident, x.dtype), total[:-1]])
-    return op(within, carry[:, None]).reshape(x.shape)
-
-
-def _cumsum(x, reverse=False):
-    """Inclusive prefix sum along axis 0 (int32)."""
-    return _scan("add", x, reverse)
-
-
-def _cummax(x, reverse=False):
-    return _scan("max", x, reverse)
-
-
-def _cummin(x, reverse=False):
-    return _scan("min", x, reverse)
-
-
-def _top_bit(hi, lo):
-    """Highest set bit (0..48) of the 48-bit code ``(hi, lo)``; -1 for 0."""
-    return jnp.where(hi != 0, 55 - jax.lax.clz(hi), 31 - jax.lax.clz(lo))
-
-
-def _compact_rows(rows, keep, fill):
-    """Rows ``(C, k)`` where ``keep`` moved to the front in order; the rest take ``fill (k,)``.
-    Returns ``(rows, count)``."""
-    cap = rows.shape[0]
-    rank = _cumsum(keep.astype(jnp.int32))
-    count = rank[-1]
-    out = jnp.zeros_like(rows).at[jnp.where(keep, rank - 1, cap)].set(rows, mode="drop")
-    return jnp.where((jnp.arange(cap) < count)[:, None], out, fill), count
-
-
-def _padding(capacity: int):
-    """``(code (capacity, 2), depth, log_odds)`` holding only padding rows (code
-    ``(SENTINEL_HI, 0)``, depth 16, log-odds 0): buffers to scatter leaves into."""
-    return (jnp.broadcast_to(jnp.array([morton.SENTINEL_HI, 0], jnp.int32), (capacity, 2)),
-            jnp.full((capacity,), _D, jnp.int32), jnp.zeros((capacity,), jnp.float32))
-
-
 def _compact(m: OccupancyMap, keep, depth=None, log_odds=None) -> OccupancyMap:
     """Keep the rows where ``keep`` (order preserved), padding the rest."""
     depth = m.depth if depth is None else depth
     log_odds = m.log_odds if log_odds is None else log_odds
     cap = m.capacity
-    rank = _cumsum(keep.astype(jnp.int32))
+    rank = cumsum(keep.astype(jnp.int32))
     pos = jnp.where(keep, rank - 1, cap)
     # each array scattered into a buffer pre-filled with its padding value: no stacked
     # copy, no second pass to pad (less memory written)
-    pad_code, pad_depth, pad_value = _padding(cap)
+    pad_code, pad_depth, pad_value = padding_rows(cap)
     code = pad_code.at[pos].set(m.code, mode="drop")
     depth = pad_depth.at[pos].set(depth.astype(jnp.int32), mode="drop")
     log_odds = pad_value.at[pos].set(log_odds.astype(jnp.float32), mode="drop")
     return OccupancyMap(code, depth, log_odds, rank[-1], m.params, m.resolution, m.tree_depth)
 
 
-def _prune_runs(m: OccupancyMap) -> OccupancyMap:
+def prune_runs(m: OccupancyMap) -> OccupancyMap:
     """Maximal prune in one pass.
 
     A node (depth >= 1: the root is never created, as OctoMap's ``prune`` never prunes it)
@@ -190,26 +111,26 @@ def _prune_runs(m: OccupancyMap) -> OccupancyMap:
     ch, cl = m.code[:, 0], m.code[:, 1]
     end = morton.end_words(m.code, m.depth)
     eh, el = end[:, 0], end[:, 1]
-    joins_prev = (valid & (_shift_down(eh, 1, -1) == ch) & (_shift_down(el, 1, -1) == cl)
-                  & (_shift_down(m.log_odds, 1, jnp.nan) == m.log_odds))
-    head = _cummax(jnp.where(joins_prev, -1, i))
-    joins_next = _shift_up(joins_prev, 1, False)
-    tail = _cummin(jnp.where(joins_next, cap, i), reverse=True)
+    joins_prev = (valid & (shift_down(eh, 1, -1) == ch) & (shift_down(el, 1, -1) == cl)
+                  & (shift_down(m.log_odds, 1, jnp.nan) == m.log_odds))
+    head = cummax(jnp.where(joins_prev, -1, i))
+    joins_next = shift_up(joins_prev, 1, False)
+    tail = cummin(jnp.where(joins_next, cap, i), reverse=True)
     gate = m.count >= 0
     rsh, rsl, reh, rel = ch[head], cl[head], eh[tail], el[tail]  # gathered inside the depth pass
     # trailing zero bits of rs (48 for rs = 0), then whole octal digits
     ctz = lambda w: jax.lax.population_count(~w & (w - 1))  # noqa: E731 (32 for w = 0)
     tz = jnp.where(rsl != 0, ctz(rsl), 24 + jnp.minimum(ctz(rsh), 24))
     div3 = lambda x: jax.lax.div(jnp.maximum(x, 0), 3)  # noqa: E731 (non-negative: no floor fix-up)
-    k_start = jnp.maximum(div3(_top_bit(ch ^ rsh, cl ^ rsl)), div3(tz))
-    k_end = div3(_top_bit(ch ^ reh, cl ^ rel))
+    k_start = jnp.maximum(div3(morton.top_bit(ch ^ rsh, cl ^ rsl)), div3(tz))
+    k_end = div3(morton.top_bit(ch ^ reh, cl ^ rel))
     k = jnp.minimum(jnp.minimum(k_start, k_end), _D - 1)
-    depth = _materialize(gate, lambda: jnp.minimum(m.depth, _D - k))
+    depth = materialize(gate, lambda: jnp.minimum(m.depth, _D - k))
     keep = valid & morton.words_equal(morton.truncate_words(m.code, depth), m.code)
     return _compact(m, keep, depth=depth)
 
 
-_prune = jax.jit(_prune_runs)
+_prune = jax.jit(prune_runs)
 
 
 def prune(m: OccupancyMap) -> OccupancyMap:
@@ -303,11 +224,11 @@ def num_nodes(m: OccupancyMap) -> int:
     """Number of nodes OctoMap's ``size()`` reports for the same tree: the leaves plus every
     distinct inner node (all ancestors of the leaves, root included). 0 for an empty map.
     Host-side, one pass over the sorted leaves (the count the file writers put in headers)."""
-    from .io import _preorder
-
     n = m.num_leaves
+    if n == 0:
+        return 0
     codes = morton.join_codes(np.asarray(m.code)[:n])
-    return _preorder.num_nodes(codes, np.asarray(m.depth)[:n])
+    return int(morton.group_sizes(codes, np.asarray(m.depth)[:n]).sum())
 
 
 # ----------------------------------------------------------------------------- voxel updates
@@ -358,7 +279,7 @@ def _plan_updates(m: OccupancyMap, words, valid):
     # the identity is the stable sort of sorted rows (no gather on insert's presorted path)
     order, code = jax.lax.cond(presorted, lambda: (order, code), sort_rows)
     valid_sorted = code[:, 0] < morton.SENTINEL_HI
-    prev = _shift_down(code, 1, -1)
+    prev = shift_down(code, 1, -1)
     seg_start = ~morton.words_equal(code, prev)
     row, known = lookup_words(m, code)
     known = known & valid_sorted
@@ -386,7 +307,7 @@ def _plan_splits(p, split_capacity: int):
     """
     n = split_capacity
     split = p["split"]
-    pos = jnp.where(split, _cumsum(split.astype(jnp.int32)) - 1, n)
+    pos = jnp.where(split, cumsum(split.astype(jnp.int32)) - 1, n)
     sidx = jnp.zeros((n,), jnp.int32).at[pos].set(jnp.arange(split.shape[0], dtype=jnp.int32), mode="drop")
     ok = jnp.arange(n) < jnp.sum(split)
     code = jnp.where(ok[:, None], p["code"][sidx], jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
@@ -396,8 +317,8 @@ def _plan_splits(p, split_capacity: int):
     def per_level(l):
         anc_parent = morton.truncate_words(code, l - 1)
         anc_child = morton.truncate_words(code, l)
-        fp = ~morton.words_equal(anc_parent, _shift_down(anc_parent, 1, -1))
-        fc = ~morton.words_equal(anc_child, _shift_down(anc_child, 1, -1))
+        fp = ~morton.words_equal(anc_parent, shift_down(anc_parent, 1, -1))
+        fc = ~morton.words_equal(anc_child, shift_down(anc_child, 1, -1))
         run = jnp.cumsum(fp) - 1
         bits = jnp.where(fc, jnp.left_shift(1, morton.child_index_words(code, l)), 0)
         return fp, jax.ops.segment_sum(bits, run, num_segments=n)[run]
@@ -444,7 +365,7 @@ def _apply_updates(m: OccupancyMap, p, s, deltas, fill_capacity: int, capacity: 
                             lvl, bits(fill_value), fill_ok.astype(jnp.int32)), num_keys=2)
     hi, lo, depth, value, keep = morton.merge_sorted(old, morton.merge_sorted(voxels, fillers))
     keep = keep != 0
-    rank = _cumsum(keep.astype(jnp.int32))
+    rank = cumsum(keep.astype(jnp.int32))
     pos = jnp.where(keep, rank - 1, capacity)
     put = lambda x, fill: jnp.full((capacity,), fill, jnp.int32).at[pos].set(x, mode="drop")  # noqa: E731
     out = OccupancyMap(
@@ -528,7 +449,7 @@ def from_voxels(centers, log_odds, resolution: float, depth: int = _D,
     lo = float(np.asarray(params.clamp_min_log_odds))
     hi = float(np.asarray(params.clamp_max_log_odds))
     sums = np.clip(sums.astype(np.float32), np.float32(lo), np.float32(hi))
-    m = _build(morton.split_codes(uniq), np.full(uniq.size, int(depth), np.int32), sums,
+    m = from_words(morton.split_codes(uniq), np.full(uniq.size, int(depth), np.int32), sums,
                resolution, params, bucket_capacity(uniq.size))
     if not prune_result:
         return m

@@ -18,7 +18,8 @@ from jax.test_util import check_grads
 
 from octomerge_jax import tree
 from octomerge_jax.registration import dense, metrics
-from octomerge_jax.registration._testing import surface_samples, xyz_rpy64
+from octomerge_jax.sim import surface_samples
+from helpers import xyz_rpy64
 
 RES = 0.2
 T_TRUE = xyz_rpy64(1.0, -0.5, 0.0, 0.0, 0.0, np.pi / 4)

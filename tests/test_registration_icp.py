@@ -8,8 +8,10 @@ import pytest
 
 import importlib
 
-from octomerge_jax.registration import metrics, rigid
-from octomerge_jax.registration._testing import scene_pair, xyz_rpy64
+from octomerge_jax import se3 as rigid
+from octomerge_jax.registration import metrics
+from octomerge_jax.sim import scene_pair
+from helpers import xyz_rpy64
 
 icp_mod = importlib.import_module("octomerge_jax.registration.icp")  # `registration.icp` is the function
 

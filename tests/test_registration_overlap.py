@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from octomerge_jax.registration import overlap
-from octomerge_jax.registration._testing import scene_pair, xyz_rpy64
+from octomerge_jax.sim import scene_pair
+from helpers import xyz_rpy64
 
 RES = 0.4
 

@@ -5,8 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from octomerge_jax.registration import metrics, rendezvous, rigid
-from octomerge_jax.registration._testing import xyz_rpy64
+from octomerge_jax import se3 as rigid
+from octomerge_jax.registration import metrics, rendezvous
+from helpers import xyz_rpy64
 
 
 def _octomap_matrix(roll, pitch, yaw):

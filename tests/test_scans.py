@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from octomerge_jax.io.scans import (Scan, matrix_to_quaternion, matrix_to_rpy, quaternion_to_matrix,
-                                    read_point_cloud, read_scan_graph, read_scan_log, read_scans,
+from octomerge_jax import se3
+from octomerge_jax.io.scans import (Scan, read_point_cloud, read_scan_graph, read_scan_log, read_scans,
                                     write_scan_graph, write_scan_log)
 from octomerge_jax.sim.trajectory import pose_from_xyz_rpy
 
@@ -110,8 +110,9 @@ def test_rotation_helpers():
     for _ in range(20):
         r, p, y = rng.uniform(-1.2, 1.2, 3)
         R = pose_from_xyz_rpy(0, 0, 0, r, p, y)[:3, :3]
-        np.testing.assert_allclose(quaternion_to_matrix(matrix_to_quaternion(R)), R, atol=1e-12)
-        np.testing.assert_allclose(matrix_to_rpy(R), (r, p, y), atol=1e-12)
+        q = se3.to_quaternion(R, xp=np)
+        np.testing.assert_allclose(se3.from_quaternion(q, xp=np)[:3, :3], R, atol=1e-12)
+        np.testing.assert_allclose(se3.to_xyz_rpy(pose_from_xyz_rpy(0, 0, 0, r, p, y), xp=np)[3:], (r, p, y), atol=1e-12)
 
 
 def test_build_cli_matches_octomap(tmp_path):

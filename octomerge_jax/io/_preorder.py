@@ -54,10 +54,6 @@ for _m in range(256):
 del _m, _bits
 
 
-#: ``_COMMON_DEPTH[b]``: deepest common depth of two codes whose highest differing bit is b.
-_COMMON_DEPTH = np.array([15 - b // 3 for b in range(48)], dtype=np.int64)
-
-
 class StreamError(Exception):
     """Structural error at record ``record`` of a stream (converted to ``MapFormatError``)."""
 
@@ -70,32 +66,6 @@ class StreamError(Exception):
 # ----------------------------------------------------------------------------- leaves -> tree
 
 
-def common_depths(codes: np.ndarray) -> np.ndarray:
-    """Depth of the deepest common ancestor of consecutive sorted codes, ``(n-1,)`` int64.
-
-    For distinct codes the highest differing bit ``b`` lies in octal digit ``b // 3`` from
-    the bottom, i.e. the codes part below depth ``15 - b // 3``.
-    """
-    x = codes[1:] ^ codes[:-1]
-    if x.size and not x.all():
-        raise ValueError("leaf codes must be distinct")
-    # floor(log2 x) from the float64 exponent bits (exact: 0 < x < 2^48)
-    high_bit = (x.astype(np.float64).view(np.int64) >> 52) - 1023
-    return _COMMON_DEPTH[high_bit]
-
-
-def group_sizes(codes: np.ndarray, depths: np.ndarray) -> np.ndarray:
-    """Per leaf, how many stream records it opens (its new ancestors and itself), ``(n,)``.
-
-    Raises ``ValueError`` if leaves overlap (a leaf inside another's volume).
-    """
-    depths = depths.astype(np.int64)
-    d_common = np.concatenate([[-1], common_depths(codes)])
-    if np.any(d_common[1:] >= np.minimum(depths[1:], depths[:-1])):
-        raise ValueError("leaves overlap: one leaf lies inside another")
-    return depths - d_common
-
-
 def validate_leaves(codes: np.ndarray, depths: np.ndarray) -> None:
     """``ValueError`` unless codes are strictly increasing, aligned to their depths and the
     leaves disjoint (the ``OccupancyMap`` invariants the writers rely on)."""
@@ -105,16 +75,7 @@ def validate_leaves(codes: np.ndarray, depths: np.ndarray) -> None:
         raise ValueError("leaf depths must lie in 0..16")
     if np.any(codes & ~MASKS[depths]):
         raise ValueError("a leaf code is not aligned to its depth (not a min-corner code)")
-    group_sizes(codes, depths)  # raises if leaves overlap
-
-
-def num_nodes(codes, depths) -> int:
-    """OctoMap ``size()`` of the tree whose leaves are the given sorted, disjoint leaves:
-    leaves plus every distinct ancestor, root included (0 for no leaves)."""
-    codes = np.asarray(codes, dtype=np.uint64)
-    if codes.size == 0:
-        return 0
-    return int(group_sizes(codes, np.asarray(depths)).sum())
+    morton.group_sizes(codes, depths)  # raises if leaves overlap
 
 
 class Layout(NamedTuple):
@@ -139,7 +100,7 @@ def layout(codes: np.ndarray, depths: np.ndarray) -> Layout:
     leaf i-1). The first record a leaf opens continues an existing parent (a later
     sibling); every other record is the first child of the record before it.
     """
-    counts = group_sizes(codes, depths)
+    counts = morton.group_sizes(codes, depths)
     total = int(counts.sum())
     ends = np.cumsum(counts)
     starts = ends - counts

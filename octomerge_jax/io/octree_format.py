@@ -70,7 +70,7 @@ from .. import morton
 from .._fileutil import atomic_output
 from . import _preorder
 from .errors import MapFormatError
-from ..tree import num_nodes as _tree_num_nodes
+from ..tree import num_nodes
 
 __all__ = [
     "BINARY_FILE_HEADER",
@@ -604,4 +604,3 @@ def to_message_fields(occupancy_map: _map.OccupancyMap, binary: bool = True) -> 
             "data": array.array("b", payload)}
 
 
-num_nodes = _tree_num_nodes  # one implementation, shared with ``tree.num_nodes``

@@ -32,11 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from .._fileutil import atomic_output
-from ..sim.trajectory import pose_from_xyz_rpy
+from .. import se3
 
 __all__ = ["Scan", "ScanEdge", "read_scan_graph", "write_scan_graph", "read_scan_log",
-           "write_scan_log", "read_point_cloud", "read_scans", "quaternion_to_matrix",
-           "matrix_to_quaternion", "matrix_to_rpy"]
+           "write_scan_log", "read_point_cloud", "read_scans"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,48 +65,6 @@ class ScanEdge:
     second: int
     constraint: np.ndarray
     weight: float = 1.0
-
-
-# --------------------------------------------------------------------------- rotations
-
-
-def quaternion_to_matrix(q) -> np.ndarray:
-    """Unit quaternion ``(w, x, y, z)`` -> 3x3 rotation (normalised first)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def matrix_to_quaternion(R) -> np.ndarray:
-    """3x3 rotation -> unit quaternion ``(w, x, y, z)`` with ``w >= 0``."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = [0.0, 0.0, 0.0, 0.0]
-        q[0] = (R[k, j] - R[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (R[j, i] + R[i, j]) / s
-        q[1 + k] = (R[k, i] + R[i, k]) / s
-    q = np.array(q)
-    return q if q[0] >= 0 else -q
-
-
-def matrix_to_rpy(R) -> tuple[float, float, float]:
-    """3x3 rotation -> (roll, pitch, yaw) [rad] with ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
-    R = np.asarray(R, dtype=np.float64)
-    pitch = float(np.arcsin(np.clip(-R[2, 0], -1.0, 1.0)))
-    roll = float(np.arctan2(R[2, 1], R[2, 2]))
-    yaw = float(np.arctan2(R[1, 0], R[0, 0]))
-    return roll, pitch, yaw
 
 
 # --------------------------------------------------------------------------- .graph
@@ -152,7 +109,7 @@ class _Reader:
         if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
             raise ValueError(f"{self.path}: invalid quaternion {q.tolist()} at byte offset {at}")
         T = np.eye(4)
-        T[:3, :3] = quaternion_to_matrix(q)
+        T[:3, :3] = se3.from_quaternion(q, xp=np)[:3, :3]
         T[:3, 3] = t
         return T
 
@@ -209,7 +166,7 @@ def read_scan_graph(path, *, with_edges: bool = False):
 
 def _pose_bytes(T) -> bytes:
     T = np.asarray(T, dtype=np.float64)
-    q = matrix_to_quaternion(T[:3, :3])
+    q = se3.to_quaternion(T, xp=np)
     return struct.pack("<i3di4d", 3, *T[:3, 3], 4, *q)
 
 
@@ -273,7 +230,7 @@ def read_scan_log(path) -> list[Scan]:
                 raise ValueError(f"{path}:{lineno}: non-numeric NODE pose {line!r}") from None
             if pose is not None:
                 scans.append(Scan(np.asarray(pts, np.float64).reshape(-1, 3), pose, len(scans)))
-            pose, pts, bare = pose_from_xyz_rpy(*vals), [], False
+            pose, pts, bare = se3.from_xyz_rpy(*vals, xp=np), [], False
             continue
         if len(tok) < 3:
             raise ValueError(f"{path}:{lineno}: expected 'x y z', got {line!r}")
@@ -298,7 +255,7 @@ def write_scan_log(path, scans) -> None:
     out = _io.StringIO()
     for s in scans:
         s = s if isinstance(s, Scan) else Scan(np.asarray(s[0], float), np.asarray(s[1], float))
-        roll, pitch, yaw = matrix_to_rpy(s.pose[:3, :3])
+        roll, pitch, yaw = (float(a) for a in se3.to_xyz_rpy(s.pose, xp=np)[3:])
         x, y, z = (float(v) for v in s.pose[:3, 3])
         out.write(f"NODE {x!r} {y!r} {z!r} {roll!r} {pitch!r} {yaw!r}\n")
         for px, py, pz in np.asarray(s.points, np.float64).reshape(-1, 3).tolist():

@@ -19,7 +19,7 @@ from .overlap import Overlap, overlap
 from .points import occupied_points
 from .rendezvous import (lift_2d, relative_pose_2d, relative_pose_3d, rendezvous_transform,
                          rendezvous_transform_2d)
-from .rigid import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quaternion, to_xyz_rpy, transform_points
+from ..se3 import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quaternion, to_xyz_rpy, transform_points
 
 __all__ = [
     "CorrelationResult", "correlation_search",

@@ -46,7 +46,7 @@ import numpy as np
 
 from .. import morton
 from ..map import OccupancyMap, bucket_capacity
-from . import rigid
+from .. import se3
 
 __all__ = ["CorrelationResult", "correlation_search"]
 
@@ -189,7 +189,7 @@ def correlation_search(target, source, T_1_2_init, *, cell: float | None = None,
     ``separation`` [m] (default 4 cells) from the better ones in ``yaw difference x map 2's RMS
     radius + translation difference``.
     """
-    T0 = rigid.check_rigid(T_1_2_init, "T_1_2_init").astype(np.float64)
+    T0 = se3.check_rigid(T_1_2_init, "T_1_2_init").astype(np.float64)
     if int(num_hypotheses) < 1 or int(per_yaw) < 1:
         raise ValueError(f"num_hypotheses and per_yaw must be >= 1, got {num_hypotheses!r}, {per_yaw!r}")
     if not (np.isfinite(free_weight) and free_weight >= 0):

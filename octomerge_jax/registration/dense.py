@@ -98,7 +98,7 @@ traced in ``T``); ``fused_log_odds`` is the fusion rule of Alg. 8 evaluated at p
 are differentiable w.r.t. the transform, as is ``problem_loss``. Gradients through ``icp`` come
 from the implicit derivative of its fixed point (``icp.py``).
 
-The se(3) exponential used here (``_se3_exp``) is private to this module: ``rigid.py`` has no
+The se(3) exponential used here (``_se3_exp``) is private to this module: ``se3.py`` has no
 Lie-algebra helpers.
 """
 
@@ -114,7 +114,8 @@ import numpy as np
 from .. import morton, tree
 from ..map import OccupancyMap, bucket_capacity, from_leaves
 from ..resample import check_rigid_transform, sample
-from . import _solver, rigid
+from . import _solver
+from .. import se3
 
 __all__ = [
     "STATUS_CONVERGED",
@@ -178,7 +179,7 @@ def _se3_exp(xi):
     eye = jnp.eye(3, dtype=xi.dtype)
     R = eye + a[..., None, None] * K + b[..., None, None] * K2
     V = eye + b[..., None, None] * K + c[..., None, None] * K2
-    return rigid.from_rotation_translation(R, (V @ v[..., None])[..., 0])
+    return se3.from_rotation_translation(R, (V @ v[..., None])[..., 0])
 
 
 def pose_from_increment(T_start, z, center, radius):
@@ -191,7 +192,7 @@ def pose_from_increment(T_start, z, center, radius):
     E = _se3_exp(xi)
     R, t = E[:3, :3], E[:3, 3]
     t = t + center - R @ center
-    return T_start @ rigid.from_rotation_translation(R, t)
+    return T_start @ se3.from_rotation_translation(R, t)
 
 
 # ----------------------------------------------------------------------------- pytrees
@@ -529,7 +530,7 @@ def _at(problem: AlignProblem, i):
 def _level_terms(lv, T_1_2):
     """``(loss, coverage (P,), _corners(...))`` of a level under ``T_1_2``."""
     map1, scale, pts, signed, w = lv[:5]
-    y = rigid.transform_points(jnp.asarray(T_1_2, jnp.float32), pts)
+    y = se3.transform_points(jnp.asarray(T_1_2, jnp.float32), pts)
     corners = _corners(map1, y * scale)
     s1, cov = _signed_field(corners)
     a = lv[6]
@@ -550,7 +551,7 @@ def _both_at(problem: AlignProblem, i):
 
 def _reverse_loss(rev, T_1_2):
     """The reverse direction's loss (map 2 sampled at map 1's points) under ``T_1_2``."""
-    return _level_terms(rev, rigid.inverse(jnp.asarray(T_1_2, jnp.float32)))[0]
+    return _level_terms(rev, se3.inverse(jnp.asarray(T_1_2, jnp.float32)))[0]
 
 
 def _symmetrised(loss, rev, finest, T_1_2):
@@ -839,8 +840,8 @@ def transformed_occupancy(m_src: OccupancyMap, T_dst_src, points_dst, *,
     (``"trilinear"`` / ``"thesis"``), so a downstream loss on a transformed map's occupancy
     can be descended in the transform (``transform_map`` itself plans on the host).
     """
-    T_src_dst = rigid.inverse(jnp.asarray(T_dst_src, jnp.float32))
-    p = rigid.transform_points(T_src_dst, jnp.asarray(points_dst, jnp.float32).reshape(-1, 3))
+    T_src_dst = se3.inverse(jnp.asarray(T_dst_src, jnp.float32))
+    p = se3.transform_points(T_src_dst, jnp.asarray(points_dst, jnp.float32).reshape(-1, 3))
     v, k = sample(m_src, p, method=method, space=space)
     shape = jnp.shape(points_dst)[:-1]
     return v.reshape(shape), k.reshape(shape)

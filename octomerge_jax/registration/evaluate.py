@@ -16,7 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import neighbors, rigid
+from . import neighbors
+from .. import se3
 from .icp import _pad_host
 
 __all__ = ["RegistrationStats", "evaluate_registration"]
@@ -76,7 +77,7 @@ def evaluate_registration(source, target, T_target_source, max_correspondence_di
     host = not any(isinstance(x, jax.Array)  # tracers included
                    for x in (source, target, T_target_source, source_count, target_count))
     if host:
-        T = rigid.check_rigid(T_target_source, "T_target_source").astype(np.float64)
+        T = se3.check_rigid(T_target_source, "T_target_source").astype(np.float64)
         s, ns = _pad_host(source, None, "source")
         t, nt = _pad_host(target, None, "target")
         src = np.asarray(source, np.float64).reshape(-1, 3)

@@ -124,7 +124,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import map as _map
-from . import neighbors, rigid
+from . import neighbors
+from .. import se3
 
 __all__ = [
     "IcpResult",
@@ -310,7 +311,7 @@ def _kabsch(src, dst, w):
     d = jnp.where(d == 0, 1.0, d)
     R = V @ jnp.diag(jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d])) @ U.T
     t = md - R @ ms
-    return rigid.from_rotation_translation(R, t)
+    return se3.from_rotation_translation(R, t)
 
 
 def _skew(v):
@@ -326,7 +327,7 @@ def _implicit_step(T_hat, src, tgt_pts, w):
     T_hat = jax.lax.stop_gradient(T_hat)
     w = jax.lax.stop_gradient(w).astype(src.dtype)
     n = jnp.maximum(jnp.sum(w), 1.0)
-    p = rigid.transform_points(T_hat, src)
+    p = se3.transform_points(T_hat, src)
     c = jax.lax.stop_gradient(jnp.sum(w[:, None] * p, 0) / n)
     pc = p - c
     r = p - tgt_pts
@@ -373,7 +374,7 @@ def _chart(T, T_ref):
 
 
 def _unchart(x, T_ref):
-    return rigid.from_rotation_translation(_so3_exp(x[:3]) @ T_ref[:3, :3], x[3:] + T_ref[:3, 3])
+    return se3.from_rotation_translation(_so3_exp(x[:3]) @ T_ref[:3, :3], x[3:] + T_ref[:3, 3])
 
 
 def _anderson(x_g, f, dF, dG, n_hist):
@@ -503,7 +504,7 @@ def _icp_core(source, source_count, target, grids, T_init, dists, epsilon, final
         # distance and the nearest centroid otherwise ("nearest"); last stage: the exact
         # nearest point. ``queries`` = (points, weights, count), a stage's query cloud.
         pts, wt, cnt = queries
-        p = rigid.transform_points(T, pts)
+        p = se3.transform_points(T, pts)
         if coarse_matching != "nearest":  # one query; the level is data (no cond: vmap-friendly)
             return _finish_match(*nearest(grids, p, stage, cnt), stage, wt)
         d2, idx, match = nearest(grids, p, last_stage, cnt)
@@ -813,11 +814,11 @@ def _number(x) -> float:
 def _check_T(T, name):
     if _is_traced(T):
         return jnp.asarray(T, jnp.float32)
-    return rigid.check_rigid(T, name).astype(np.float32)
+    return se3.check_rigid(T, name).astype(np.float32)
 
 
 def _invert_result(r: IcpResult) -> IcpResult:
-    return dataclasses.replace(r, T_target_source=rigid.inverse(r.T_target_source),
+    return dataclasses.replace(r, T_target_source=se3.inverse(r.T_target_source),
                                swapped=jnp.ones_like(r.swapped))
 
 
@@ -855,7 +856,7 @@ def icp(source, target, T_target_source_init, *, resolution: float,
     kw = dict(max_iterations=int(max_iterations), cell_capacity=int(cell_capacity),
               coarse_matching=coarse_matching)
     if swap_larger and s_host is not None and t_host is not None and s_host > t_host:
-        T0_inv = rigid.inverse(T0) if _is_traced(T0) else np.linalg.inv(np.float64(T0)).astype(np.float32)
+        T0_inv = se3.inverse(T0) if _is_traced(T0) else np.linalg.inv(np.float64(T0)).astype(np.float32)
         r = icp_padded(t, tc, s, sc, T0_inv, dists, eps, min_inliers=min_inliers, **kw)
         return _invert_result(r)
     return icp_padded(s, sc, t, tc, T0, dists, eps, min_inliers=min_inliers, **kw)
@@ -880,9 +881,9 @@ def default_hypotheses(T_target_source_init, center, yaw_step_rad: float = np.pi
         rpy += [(a, 0.0, 0.0), (-a, 0.0, 0.0), (0.0, a, 0.0), (0.0, -a, 0.0)]
     rpy = np.asarray(rpy, np.float32)
     z = jnp.zeros((rpy.shape[0],), jnp.float32)
-    D = rigid.from_xyz_rpy(z, z, z, rpy[:, 0], rpy[:, 1], rpy[:, 2])
-    C = rigid.from_rotation_translation(jnp.eye(3, dtype=jnp.float32), c)
-    return C @ D @ rigid.inverse(C) @ T0
+    D = se3.from_xyz_rpy(z, z, z, rpy[:, 0], rpy[:, 1], rpy[:, 2])
+    C = se3.from_rotation_translation(jnp.eye(3, dtype=jnp.float32), c)
+    return C @ D @ se3.inverse(C) @ T0
 
 
 def _sequential_default() -> bool:
@@ -1035,18 +1036,18 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
     if hypotheses is None:
         valid = (jnp.arange(s.shape[0]) < sc)[:, None]
         centroid = jnp.sum(jnp.where(valid, s, 0.0), 0) / jnp.maximum(sc, 1).astype(jnp.float32)
-        center = rigid.transform_points(T0, centroid[None])[0]
+        center = se3.transform_points(T0, centroid[None])[0]
         hyps = default_hypotheses(T0, center, yaw_step_rad, roll_pitch_offset_rad)
     else:
         hyps = jnp.asarray(hypotheses, jnp.float32)
         if hyps.ndim != 3 or hyps.shape[-2:] != (4, 4):
             raise ValueError(f"hypotheses: expected shape (k, 4, 4), got {hyps.shape}")
         if not _is_traced(hypotheses):
-            rigid.check_rigid(np.asarray(hypotheses), "hypotheses")
+            se3.check_rigid(np.asarray(hypotheses), "hypotheses")
     swap = swap_larger and s_host is not None and t_host is not None and s_host > t_host
     if swap:
         s, sc, t, tc = t, tc, s, sc
-        hyps = rigid.inverse(hyps)
+        hyps = se3.inverse(hyps)
     tol = float(dists[-1]) / 4.0 if basin_tolerance is None else _number(basin_tolerance)
     if not (np.isfinite(tol) and tol >= 0):
         raise ValueError(f"basin_tolerance must be a finite number >= 0 [m], got {basin_tolerance!r}")
@@ -1058,5 +1059,5 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
                             sequential=_sequential_default() if sequential is None else bool(sequential))
     if swap:
         out = IcpMultiResult(_invert_result(out.best), _invert_result(out.candidates), out.best_index,
-                             out.scores, rigid.inverse(out.hypotheses), out.basin, out.num_iterations_run)
+                             out.scores, se3.inverse(out.hypotheses), out.basin, out.num_iterations_run)
     return out

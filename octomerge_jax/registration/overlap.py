@@ -20,7 +20,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from . import neighbors, rigid
+from . import neighbors
+from .. import se3
 
 __all__ = ["Overlap", "overlap"]
 
@@ -50,7 +51,7 @@ def _inside(p, lo, hi):
 def _overlap_bbox(p1, c1, p2, c2, T_1_2, margin):
     v1 = jnp.arange(p1.shape[0]) < c1
     v2 = jnp.arange(p2.shape[0]) < c2
-    w = rigid.transform_points(T_1_2, p2)
+    w = se3.transform_points(T_1_2, p2)
     lo1, hi1 = _bbox(p1, v1)
     m2 = v2 & _inside(w, lo1, hi1)
     lo2, hi2 = _bbox(w, m2)
@@ -62,7 +63,7 @@ def _overlap_bbox(p1, c1, p2, c2, T_1_2, margin):
 def _overlap_voxel(p1, c1, p2, c2, T_1_2, radius, *, cell_capacity, tables):
     v1 = jnp.arange(p1.shape[0]) < c1
     v2 = jnp.arange(p2.shape[0]) < c2
-    w = rigid.transform_points(T_1_2, p2)
+    w = se3.transform_points(T_1_2, p2)
     r = jnp.reshape(radius, (1,))
     g1 = neighbors.build_grids(p1, c1, r, table_sizes=(tables[0],), cell_capacity=cell_capacity)
     g2 = neighbors.build_grids(w, c2, r, table_sizes=(tables[1],), cell_capacity=cell_capacity)
@@ -88,7 +89,7 @@ def overlap(points_1, points_2, T_1_2, method: str = "bbox", *, margin: float = 
     if method not in ("bbox", "voxel"):
         raise ValueError(f"method must be 'bbox' or 'voxel', got {method!r}")
     if not isinstance(T_1_2, jax.core.Tracer):
-        rigid.check_rigid(T_1_2, "T_1_2")
+        se3.check_rigid(T_1_2, "T_1_2")
     p1, c1 = _as_padded(points_1, count_1, "points_1")
     p2, c2 = _as_padded(points_2, count_2, "points_2")
     T = jnp.asarray(T_1_2, jnp.float32)

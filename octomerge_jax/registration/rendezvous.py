@@ -17,7 +17,7 @@ bearings in eqs. 5.9-5.11; we name them ``heading`` and ``bearing``.) When robot
 o's relative heading directly, pass it as ``relative_heading_rad`` instead of ``theta_o``.
 
 3-D (our generalisation): ``T_map1_map2 = T_map1_c @ T_c_o @ inverse(T_map2_o)`` with poses as
-4x4 transforms (e.g. ``rigid.from_xyz_rpy``) and ``T_c_o`` from range, azimuth, elevation and
+4x4 transforms (e.g. ``se3.from_xyz_rpy``) and ``T_c_o`` from range, azimuth, elevation and
 the observed robot's roll/pitch/yaw relative to c (``relative_pose_3d``). Azimuth is measured
 from +x towards +y, elevation from the x-y plane towards +z, in c's frame. With zero elevation,
 roll and pitch it reduces exactly to the 2-D formula.
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from . import rigid
+from .. import se3
 
 __all__ = ["pose_2d", "relative_pose_2d", "rendezvous_transform_2d", "relative_pose_3d",
            "rendezvous_transform", "lift_2d"]
@@ -89,9 +89,9 @@ def relative_pose_3d(range_m, azimuth_rad, elevation_rad=0.0, roll_rad=0.0, pitc
     x = r * jnp.cos(el) * jnp.cos(az)
     y = r * jnp.cos(el) * jnp.sin(az)
     z = r * jnp.sin(el)
-    return rigid.from_xyz_rpy(x, y, z, roll_rad, pitch_rad, yaw_rad)
+    return se3.from_xyz_rpy(x, y, z, roll_rad, pitch_rad, yaw_rad)
 
 
 def rendezvous_transform(T_map1_c, T_map2_o, T_c_o):
     """3-D eq. 5.8: ``T_map1_map2 = T_map1_c T_c_o T_map2_o^{-1}`` (4x4)."""
-    return jnp.asarray(T_map1_c, jnp.float32) @ jnp.asarray(T_c_o, jnp.float32) @ rigid.inverse(T_map2_o)
+    return jnp.asarray(T_map1_c, jnp.float32) @ jnp.asarray(T_c_o, jnp.float32) @ se3.inverse(T_map2_o)

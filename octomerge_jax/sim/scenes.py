@@ -25,6 +25,7 @@ import numpy as np
 import trimesh
 
 from .raycast import mesh_triangles
+from .sensors import SpinningLidar
 
 __all__ = ["Scene", "lab_room", "office_floor", "campus", "mesh_scene", "make_scene"]
 
@@ -200,8 +201,6 @@ def campus(seed: int = 0, size=(100.0, 60.0), num_buildings: int = 14, num_trees
     Robot 1 drives the west 55 m of the road, robot 2 the east 55 m; both see the middle.
     ``seed`` places the buildings and trees (never on the road).
     """
-    from .sensors import SpinningLidar
-
     rng = np.random.default_rng(seed)
     sx, sy = float(size[0]), float(size[1])
     if sx < 40 or sy < 4 * road_half_width:

@@ -9,31 +9,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import se3
+
 __all__ = ["resample_path", "poses_along_path", "pose_from_xyz_rpy", "yaw_matrix",
            "apply_odometry_drift"]
 
 
-def yaw_matrix(yaw_rad: float) -> np.ndarray:
-    """3x3 rotation about z by ``yaw_rad``."""
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def pose_from_xyz_rpy(x, y, z, roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
-    """4x4 pose from a translation [m] and roll/pitch/yaw [rad] (``R = Rz(yaw) Ry(pitch)
-    Rx(roll)``, as OctoMap's ``Pose6D`` / ``Quaternion(roll, pitch, yaw)``)."""
-    cr, sr = np.cos(roll_rad), np.sin(roll_rad)
-    cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
-    cy, sy = np.cos(yaw_rad), np.sin(yaw_rad)
-    R = np.array([
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ])
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = (x, y, z)
-    return T
+    """``(4, 4)`` float64 pose from a translation [m] and roll/pitch/yaw [rad]
+    (``se3.from_xyz_rpy`` on the host: OctoMap's ``Pose6D``)."""
+    return se3.from_xyz_rpy(x, y, z, roll_rad, pitch_rad, yaw_rad, xp=np)
 
 
 def _resample(waypoints, spacing: float, closed: bool):
@@ -102,7 +87,7 @@ def apply_odometry_drift(poses, rng: np.random.Generator, translation_std: float
         rel = np.linalg.inv(poses[i - 1]) @ poses[i]
         dist = float(np.linalg.norm(rel[:3, 3]))
         noise = np.eye(4)
-        noise[:3, :3] = yaw_matrix(rng.normal(0.0, yaw_std_rad * dist))
+        noise[:3, :3] = se3.rot_z(rng.normal(0.0, yaw_std_rad * dist), xp=np)
         noise[:2, 3] = rng.normal(0.0, translation_std * dist, 2)
         out[i] = out[i - 1] @ rel @ noise
     return out

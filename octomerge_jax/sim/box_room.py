@@ -1,4 +1,4 @@
-"""Synthetic registration scenes for tests and benchmarks (NumPy only, deterministic).
+"""A synthetic box room for registration tests, benchmarks and notebooks (NumPy only, deterministic).
 
 An asymmetric room (floor, four walls, an L-shaped partition, boxes and a pillar at irregular
 places) whose surfaces are sampled densely and voxelised like an occupied-voxel cloud of an
@@ -8,6 +8,10 @@ OctoMap (centres of occupied finest voxels) in each robot's own map frame.
 from __future__ import annotations
 
 import numpy as np
+
+from .. import se3
+
+__all__ = ["surface_samples", "voxel_centres", "scene_pair"]
 
 # axis-aligned boxes (min xyz, max xyz) in the world frame [m]
 _BOXES = [
@@ -64,7 +68,7 @@ def scene_pair(resolution: float = 0.2, T_world_2=None, crop_1=(-1.0, 8.0), crop
     ``T_1_2 (4, 4)`` float64 (= ``T_world_2``).
     """
     if T_world_2 is None:
-        T_world_2 = _exact(0.0, 0.0, np.pi / 4, (1.0, -0.5, 0.0))
+        T_world_2 = se3.from_xyz_rpy(1.0, -0.5, 0.0, 0.0, 0.0, np.pi / 4, xp=np)
     T_world_2 = np.asarray(T_world_2, np.float64)
     dense = surface_samples(resolution / 3.0)
     dense = dense[dense[:, 2] <= z_max]
@@ -75,19 +79,3 @@ def scene_pair(resolution: float = 0.2, T_world_2=None, crop_1=(-1.0, 8.0), crop
     d2 = dense[in2] @ T_2_world[:3, :3].T + T_2_world[:3, 3]
     p2 = voxel_centres(d2, resolution)
     return p1, p2, T_world_2
-
-
-def _exact(roll, pitch, yaw, t):
-    """float64 ``from_xyz_rpy`` (NumPy), OctoMap convention."""
-    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    R = np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                  [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                  [-sp, cp * sr, cp * cr]])
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
-
-
-def xyz_rpy64(x, y, z, roll, pitch, yaw) -> np.ndarray:
-    """float64 NumPy 4x4 from OctoMap ``Pose6D`` parameters (for exact ground truth)."""
-    return _exact(roll, pitch, yaw, (x, y, z))

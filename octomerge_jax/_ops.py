@@ -1,0 +1,117 @@
+"""Padded-array primitives shared by the kernels, and the capacity-bucket policy.
+
+Arrays are padded to static power-of-two capacities (``bucket_capacity``) so that maps of
+similar size share one compiled function and stack under ``vmap``; padding rows carry the
+sentinel code ``(morton.SENTINEL_HI, 0)`` that sorts after every real code. The scans here run
+along axis 0 of int32 arrays; the shifts move rows along axis 0. All are jittable and
+vmappable. Why blocked scans and ``materialize`` exist: ``docs/design.md``, "Blocked scans"
+and "Materialised intermediates".
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import morton
+
+__all__ = [
+    "MIN_CAPACITY",
+    "bucket_capacity",
+    "is_traced",
+    "shift_up",
+    "shift_down",
+    "materialize",
+    "cumsum",
+    "cummax",
+    "cummin",
+    "padding_rows",
+    "float_bits",
+]
+
+MIN_CAPACITY = 256
+
+
+def bucket_capacity(n: int, minimum: int = MIN_CAPACITY) -> int:
+    """Smallest power of two ``>= max(n, minimum)``: the static capacity for ``n`` rows."""
+    n = max(int(n), int(minimum), 1)
+    return 1 << math.ceil(math.log2(n))
+
+
+def is_traced(*xs) -> bool:
+    """Whether any of ``xs`` is a JAX tracer (the caller runs under ``jit``/``vmap``), so
+    host-side sizing must not read its value."""
+    return any(isinstance(x, jax.core.Tracer) for x in xs)
+
+
+def shift_up(x, k: int, fill):
+    """``y[i] = x[i + k]`` along axis 0 (rows past the end take ``fill``); ``k`` static >= 1."""
+    pad = jnp.full((k,) + x.shape[1:], fill, x.dtype)
+    return jnp.concatenate([x[k:], pad], axis=0)
+
+
+def shift_down(x, k: int, fill):
+    """``y[i] = x[i - k]`` along axis 0 (the first ``k`` rows take ``fill``); ``k`` static >= 1."""
+    pad = jnp.full((k,) + x.shape[1:], fill, x.dtype)
+    return jnp.concatenate([pad, x[:-k]], axis=0)
+
+
+def materialize(gate, fn):
+    """``fn()`` (an array or a pytree of arrays) computed once into memory.
+
+    ``gate`` is a traced True (e.g. ``m.count >= 0``): ``fn`` runs inside a ``lax.cond`` on
+    it, so XLA cannot fuse (and so recompute) its ops into each consumer. A performance hint
+    only: the value is ``fn()``, and under ``vmap`` the cond becomes a select."""
+    shapes = jax.eval_shape(fn)
+    return jax.lax.cond(gate, fn, lambda: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes))
+
+
+_SCANS = {"add": (jax.lax.cumsum, jnp.add, 0),
+          "max": (jax.lax.cummax, jnp.maximum, np.iinfo(np.int32).min),
+          "min": (jax.lax.cummin, jnp.minimum, np.iinfo(np.int32).max)}
+
+
+def _scan(kind: str, x, reverse: bool = False, block: int = 4):
+    """Inclusive scan of int32 ``x`` along axis 0 in blocks: ``lax.cum*`` inside blocks of
+    ``block`` rows, the block totals scanned recursively."""
+    if reverse:
+        return _scan(kind, x[::-1], block=block)[::-1]
+    cum, op, ident = _SCANS[kind]
+    n = x.shape[0]
+    if n <= block or n % block:
+        return cum(x, axis=0)
+    within = cum(x.reshape((n // block, block) + x.shape[1:]), axis=1)
+    total = _scan(kind, within[:, -1], block=block)
+    carry = jnp.concatenate([jnp.full((1,) + x.shape[1:], ident, x.dtype), total[:-1]])
+    return op(within, carry[:, None]).reshape(x.shape)
+
+
+def cumsum(x, reverse: bool = False):
+    """Inclusive prefix sum of int32 ``x (n, ...)`` along axis 0 (blocked scan)."""
+    return _scan("add", x, reverse)
+
+
+def cummax(x, reverse: bool = False):
+    """Inclusive running maximum of int32 ``x (n, ...)`` along axis 0 (blocked scan)."""
+    return _scan("max", x, reverse)
+
+
+def cummin(x, reverse: bool = False):
+    """Inclusive running minimum of int32 ``x (n, ...)`` along axis 0 (blocked scan)."""
+    return _scan("min", x, reverse)
+
+
+def padding_rows(capacity: int):
+    """``(code (capacity, 2) int32, depth (capacity,) int32, log_odds (capacity,) float32)``
+    holding only padding rows (code ``(SENTINEL_HI, 0)``, depth 16, log-odds 0): buffers to
+    scatter leaves into."""
+    return (jnp.broadcast_to(jnp.array([morton.SENTINEL_HI, 0], jnp.int32), (capacity, 2)),
+            jnp.full((capacity,), morton.TREE_DEPTH, jnp.int32), jnp.zeros((capacity,), jnp.float32))
+
+
+def float_bits(x):
+    """The IEEE-754 bits of ``x`` as float32, as int32 (to carry floats in integer sorts)."""
+    return jax.lax.bitcast_convert_type(x.astype(jnp.float32), jnp.int32)
