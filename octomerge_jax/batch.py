@@ -168,13 +168,13 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
                 jnp.asarray(dists, jnp.float32), jnp.float32(eps), jnp.float32(eps * 0.01),
                 jnp.int32(kw["min_inliers"]), max_iterations=int(kw["max_iterations"]),
                 cell_capacity=int(kw["cell_capacity"]), table_sizes=neighbors.level_table_sizes(ct, dists),
-                coarse_matching=kw["coarse_matching"], sequential=icp_mod._sequential_default())
+                coarse_matching=kw["coarse_matching"], sequential=icp_mod.sequential_default())
             jax.block_until_ready(out)
             dt = (time.perf_counter() - t0) / len(members)
             for j, (i, swap, _, _) in enumerate(members):
                 r = _unstack(out, j)
                 if swap:
-                    r = icp_mod._invert_result(r)
+                    r = icp_mod.invert_result(r)
                 state[i]["timings"]["icp"] = dt
                 _finish_icp(i, state, results, r, cfg)
     elif rc.refine == "multi":

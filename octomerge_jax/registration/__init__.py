@@ -10,11 +10,12 @@ from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best
                     problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
                     transformed_occupancy)
 from .evaluate import RegistrationStats, evaluate_registration
-from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
-                  pad_points, stage_distances)
+from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded, invert_result,
+                  pad_points, pad_points_host, sequential_default, stage_distances)
 from .metrics import (point_displacement, rotation_angle_error, rotation_error, translation_distance,
                       translation_error)
 from .neighbors import HashGrid, any_within, build_grid, build_grids, nearest
+from .status import Status
 from .overlap import Overlap, overlap
 from .points import occupied_points
 from .rendezvous import (lift_2d, relative_pose_2d, relative_pose_3d, rendezvous_transform,
@@ -27,8 +28,9 @@ __all__ = [
     "fused_log_odds", "pose_from_increment", "prepare_alignment", "problem_loss",
     "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
     "RegistrationStats", "evaluate_registration", "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded",
+    "invert_result", "pad_points_host", "sequential_default",
     "pad_points", "stage_distances", "rotation_angle_error", "rotation_error",
-    "translation_distance", "translation_error", "point_displacement", "HashGrid", "any_within", "build_grid",
+    "translation_distance", "translation_error", "point_displacement", "Status", "HashGrid", "any_within", "build_grid",
     "build_grids", "nearest", "Overlap", "overlap", "occupied_points", "lift_2d",
     "relative_pose_2d", "relative_pose_3d", "rendezvous_transform", "rendezvous_transform_2d",
     "check_rigid", "from_quaternion", "from_xyz_rpy", "inverse", "to_quaternion", "to_xyz_rpy",

@@ -18,7 +18,7 @@ import numpy as np
 
 from . import neighbors
 from .. import se3
-from .icp import _pad_host
+from .icp import pad_points_host
 
 __all__ = ["RegistrationStats", "evaluate_registration"]
 
@@ -78,8 +78,8 @@ def evaluate_registration(source, target, T_target_source, max_correspondence_di
                    for x in (source, target, T_target_source, source_count, target_count))
     if host:
         T = se3.check_rigid(T_target_source, "T_target_source").astype(np.float64)
-        s, ns = _pad_host(source, None, "source")
-        t, nt = _pad_host(target, None, "target")
+        s, ns = pad_points_host(source, None, "source")
+        t, nt = pad_points_host(target, None, "target")
         src = np.asarray(source, np.float64).reshape(-1, 3)
         tgt = np.asarray(target, np.float64).reshape(-1, 3)
         ref = tgt.mean(0) if nt else np.zeros(3)

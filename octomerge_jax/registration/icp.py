@@ -128,6 +128,9 @@ from . import neighbors
 from .. import se3
 
 __all__ = [
+    "invert_result",
+    "pad_points_host",
+    "sequential_default",
     "IcpResult",
     "IcpMultiResult",
     "STATUS_CONVERGED",
@@ -148,7 +151,7 @@ STATUS_TOO_FEW_INLIERS = 2
 COARSE_MATCHING = ("centroid", "nearest", "symmetric")
 _ANDERSON = 5  # history length of the Anderson acceleration (0: plain ICP)
 # coarse stages ("centroid", "nearest") query every k-th source point, k <= _COARSE_EVERY, keeping
-# at least one query block (neighbors._CHUNK): fewer would not save a block
+# at least one query block (neighbors.QUERY_BLOCK): fewer would not save a block
 _COARSE_EVERY, _COARSE_MIN_QUERIES = 4, 2048
 _STALL_REL, _STALL_PATIENCE = 1e-3, 3  # a coarse stage ends when its energy stalls
 _STALL_REL_FINAL, _STALL_PATIENCE_FINAL = 0.0, 6  # the last stage: no new best at all (a cycle)
@@ -225,11 +228,11 @@ def pad_points(points, capacity: int | None = None, *, name: str = "points"):
     """Host: ``(n, 3)`` points [m] -> ``(padded (C, 3) float32 jax array, count int32)`` with
     ``C = bucket_capacity(n)`` unless given. Raises ``ValueError`` naming ``name`` on a bad
     shape or non-finite coordinates."""
-    out, n = _pad_host(points, capacity, name)
+    out, n = pad_points_host(points, capacity, name)
     return jnp.asarray(out), jnp.asarray(n, jnp.int32)
 
 
-def _pad_host(points, capacity, name):
+def pad_points_host(points, capacity, name):
     """``pad_points`` on the host: ``(padded (C, 3) float32 NumPy array, n)``."""
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
@@ -419,7 +422,7 @@ def _coarse_rows(n: int, downsample: bool) -> int:
     (``n`` itself for small clouds). The voxel-grid centroids (``downsample``) need ``n``."""
     if downsample:
         return n
-    block = neighbors._CHUNK  # the search's query block
+    block = neighbors.QUERY_BLOCK  # the search's query block
     rows = max(min(n, 2 * _COARSE_MIN_QUERIES), -(-n // _COARSE_EVERY))
     return min(n, -(-rows // block) * block)
 
@@ -779,7 +782,7 @@ def _arg(x, dtype):
 def _prepare(points, count, name):
     """(padded (C,3) float32 array, count, host count or None)."""
     if count is None and not _is_traced(points):
-        p, c = _pad_host(points, None, name)
+        p, c = pad_points_host(points, None, name)
         return p, np.int32(c), c
     p = jnp.asarray(points, jnp.float32)
     if p.ndim != 2 or p.shape[-1] != 3:
@@ -817,7 +820,8 @@ def _check_T(T, name):
     return se3.check_rigid(T, name).astype(np.float32)
 
 
-def _invert_result(r: IcpResult) -> IcpResult:
+def invert_result(r: IcpResult) -> IcpResult:
+    """The result of the swapped problem read back: ``T_target_source`` inverted, ``swapped`` set."""
     return dataclasses.replace(r, T_target_source=se3.inverse(r.T_target_source),
                                swapped=jnp.ones_like(r.swapped))
 
@@ -858,7 +862,7 @@ def icp(source, target, T_target_source_init, *, resolution: float,
     if swap_larger and s_host is not None and t_host is not None and s_host > t_host:
         T0_inv = se3.inverse(T0) if _is_traced(T0) else np.linalg.inv(np.float64(T0)).astype(np.float32)
         r = icp_padded(t, tc, s, sc, T0_inv, dists, eps, min_inliers=min_inliers, **kw)
-        return _invert_result(r)
+        return invert_result(r)
     return icp_padded(s, sc, t, tc, T0, dists, eps, min_inliers=min_inliers, **kw)
 
 
@@ -886,7 +890,7 @@ def default_hypotheses(T_target_source_init, center, yaw_step_rad: float = np.pi
     return C @ D @ se3.inverse(C) @ T0
 
 
-def _sequential_default() -> bool:
+def sequential_default() -> bool:
     """Host: run hypotheses one after another on CPU backends, batched elsewhere."""
     return jax.default_backend() == "cpu"
 
@@ -1056,8 +1060,8 @@ def icp_multi(source, target, T_target_source_init, hypotheses=None, *, resoluti
                             max_iterations=int(max_iterations), cell_capacity=int(cell_capacity),
                             table_sizes=neighbors.level_table_sizes(t.shape[0], np.asarray(dists)),
                             coarse_matching=coarse_matching,
-                            sequential=_sequential_default() if sequential is None else bool(sequential))
+                            sequential=sequential_default() if sequential is None else bool(sequential))
     if swap:
-        out = IcpMultiResult(_invert_result(out.best), _invert_result(out.candidates), out.best_index,
+        out = IcpMultiResult(invert_result(out.best), invert_result(out.candidates), out.best_index,
                              out.scores, se3.inverse(out.hypotheses), out.basin, out.num_iterations_run)
     return out

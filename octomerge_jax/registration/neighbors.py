@@ -34,7 +34,7 @@ import numpy as np
 from .._sort import lexsort_rows
 
 __all__ = ["HashGrid", "build_grid", "build_grids", "nearest", "nearest_with_points", "any_within", "grid_table_size",
-           "level_table_sizes"]
+           "level_table_sizes", "QUERY_BLOCK"]
 
 _FAR = 1.0e7  # coordinate of empty slots [m]: farther than anything real, finite squares
 _P1, _P2, _P3 = np.uint32(73856093), np.uint32(19349663), np.uint32(83492791)
@@ -251,7 +251,7 @@ def build_grid(points, count, cell_size, *, table_size: int, cell_capacity: int 
                        table_sizes=(table_size,), cell_capacity=cell_capacity)
 
 
-_CHUNK = 2048
+QUERY_BLOCK = 2048  # rows of the query blocks of the nearest-neighbour search
 _REDO_CHUNK = 256  # the second phase's blocks: its queries are few near a solution
 
 
@@ -343,7 +343,7 @@ def _near_block(xyz, index, base, mask, origin, dims, dense, h, q):
     return d2, idx, match, sure
 
 
-def _blocked(f, q, count, outs, chunk: int = _CHUNK):
+def _blocked(f, q, count, outs, chunk: int = QUERY_BLOCK):
     """Apply the block kernel ``f`` to ``q (n, 3)`` in blocks of ``chunk`` rows; with ``count``
     (traced int) only the blocks that hold rows ``< count`` run (a loop of dynamic length, so
     padding blocks cost nothing), and rows of the blocks past it get ``outs``' fill values."""
@@ -384,7 +384,7 @@ def nearest_with_points(grid: HashGrid, queries, level=0, count=None, two_phase:
     q = jnp.asarray(queries, jnp.float32)
     n = q.shape[0]
     full = lambda qb: _nearest_block(grid.xyz, grid.index, base, mask, origin, dims, dense, h, qb)  # noqa: E731
-    if not two_phase or n <= _CHUNK or n % _CHUNK:
+    if not two_phase or n <= QUERY_BLOCK or n % QUERY_BLOCK:
         return _blocked(full, q, count, _FILL)
     near = lambda qb: _near_block(grid.xyz, grid.index, base, mask, origin, dims, dense, h, qb)  # noqa: E731
     d2, idx, match, sure = _blocked(near, q, count, _FILL + ((True, (), jnp.bool_),))
