@@ -10,7 +10,8 @@ from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best
                     problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
                     transformed_occupancy)
 from .evaluate import RegistrationStats, evaluate_registration
-from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded, invert_result,
+from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded, icp_padded_stack,
+                  invert_result,
                   pad_points, pad_points_host, sequential_default, stage_distances)
 from .metrics import (point_displacement, rotation_angle_error, rotation_error, translation_distance,
                       translation_error)
@@ -27,7 +28,7 @@ __all__ = [
     "AlignProblem", "AlignResult", "align_dense", "alignment_loss", "best_result", "default_levels",
     "fused_log_odds", "pose_from_increment", "prepare_alignment", "problem_loss",
     "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
-    "RegistrationStats", "evaluate_registration", "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded",
+    "RegistrationStats", "evaluate_registration", "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded", "icp_padded_stack",
     "invert_result", "pad_points_host", "sequential_default",
     "pad_points", "stage_distances", "rotation_angle_error", "rotation_error",
     "translation_distance", "translation_error", "point_displacement", "Status", "HashGrid", "any_within", "build_grid",
