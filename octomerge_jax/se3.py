@@ -221,10 +221,11 @@ def so3_log(R, *, xp=jnp):
     (accurate for small angles; the axis is ill-defined at pi)."""
     R = _f(R, xp)
     v = xp.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    s2 = xp.sqrt(xp.sum(v * v, axis=-1))  # 2 sin(theta)
+    sq = xp.sum(v * v, axis=-1)
+    tiny = sq < 1e-14  # 2 sin(theta) < 1e-7: first order, and no NaN gradient at zero
+    s2 = xp.sqrt(xp.where(tiny, 1.0, sq))  # 2 sin(theta)
     th = xp.arctan2(0.5 * s2, 0.5 * (xp.trace(R, axis1=-2, axis2=-1) - 1.0))
-    tiny = s2 < 1e-7
-    f = xp.where(tiny, 0.5, th / xp.where(tiny, 1.0, s2))
+    f = xp.where(tiny, 0.5, th / s2)
     return f[..., None] * v
 
 
