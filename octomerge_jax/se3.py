@@ -295,7 +295,8 @@ def check_rigid_transform(T, name: str = "T_dst_src") -> np.ndarray:
     if A.shape == (3, 4):
         A = np.vstack([A, [0.0, 0.0, 0.0, 1.0]])
     if A.shape != (4, 4):
-        raise ValueError(f"{name}: expected a (4, 4) or (3, 4) rigid transform, got shape {A.shape}")
+        raise ValueError(f"{name}: expected a (4, 4) or (3, 4) rigid transform, "
+                         f"got shape {A.shape}")
     if not np.all(np.isfinite(A)):  # check_rigid says "non-finite"; callers match "NaN"
         raise ValueError(f"{name}: contains NaN or infinite entries: {A.tolist()}")
     A = check_rigid(A, name).copy()

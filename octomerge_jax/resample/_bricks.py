@@ -253,7 +253,8 @@ def _dest_windows(dest, T_key: KeyTransform, view: SourceView):
     ext = bricks.max(axis=0) - lo + 1
     q = [wb[:, a, None] + np.arange(3) - lo[a] for a in range(3)]  # (n, 3) per axis
     inside = [(qa >= 0) & (qa < ext[a]) for a, qa in enumerate(q)]
-    lin = (q[2][:, :, None, None] * ext[1] + q[1][:, None, :, None]) * ext[0] + q[0][:, None, None, :]
+    lin = ((q[2][:, :, None, None] * ext[1] + q[1][:, None, :, None]) * ext[0]
+           + q[0][:, None, None, :])
     ok = inside[2][:, :, None, None] & inside[1][:, None, :, None] & inside[0][:, None, None, :]
     lin, ok = lin.reshape(n, 27), ok.reshape(n, 27)  # window brick x + 3 y + 9 z
     src = ((bricks[:, 2] - lo[2]) * ext[1] + bricks[:, 1] - lo[1]) * ext[0] + bricks[:, 0] - lo[0]

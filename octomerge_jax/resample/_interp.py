@@ -121,7 +121,8 @@ def blend(lo8, known8, f, mode):
     tri_p = jnp.where(ok, num_p / safe, jnp.float32(0.5))
     tri_l = jnp.where(ok, num_l / safe, zero)
     is_thesis = mode == 3
-    p = jnp.where(mode == 0, tri_p, jnp.where(is_thesis, num_p, _probability(jnp.where(mode == 1, tri_l, lo_c))))
+    p = jnp.where(mode == 0, tri_p,
+                  jnp.where(is_thesis, num_p, _probability(jnp.where(mode == 1, tri_l, lo_c))))
     lo = jnp.where(mode == 1, tri_l, jnp.where(mode == 2, lo_c, _safe_logit(p)))
     # Every contributing neighbour equal to the centre one (thesis: and known).
     same = functools.reduce(jnp.logical_and, [

@@ -10,6 +10,7 @@ source's brick table (``_bricks.SourceView``).
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -20,10 +21,28 @@ from ..map import OccupancyMap
 from ._bricks import BRICK_EDGE, BRICK_VOXELS, LOCAL_OFFSETS, KernelInputs, Plan
 from ._interp import KEY_MAX, blend
 
-__all__ = ["SNAP", "run_kernel", "transform_kernel"]
+__all__ = ["OutputLeaves", "run_kernel", "transform_kernel"]
 
 _D = morton.TREE_DEPTH
-SNAP = 1e-5  # offsets closer than this (in voxels) to a lattice point are snapped
+_SNAP = 1e-5  # offsets closer than this (in voxels) to a lattice point are snapped
+
+
+class OutputLeaves(NamedTuple):
+    """The kernel's output buffers: brick-pruned leaves, then padding rows."""
+
+    code: jax.Array  # (capacity, 2) int32 Morton code words; padding (SENTINEL_HI, 0)
+    depth: jax.Array  # (capacity,) int32 leaf depth 13..16; padding 16
+    log_odds: jax.Array  # (capacity,) float32 clamped log-odds; padding 0
+
+
+class _LoopState(NamedTuple):
+    """Carry of ``transform_kernel``'s loop over chunks."""
+
+    bufs: OutputLeaves  # output so far
+    offset: jax.Array  # () int32 rows of ``bufs`` in use
+    chunk: jax.Array  # () int32 next chunk to compute
+    misses: jax.Array  # () int32 neighbour keys outside their window so far (0 unless a bug)
+    full: jax.Array  # () bool: chunk ``chunk`` did not fit in ``bufs``
 
 
 def _spread3bits(v):
@@ -49,9 +68,9 @@ def _neighbour_keys(inp: KernelInputs, bkeys, wb, bvalid):
         base = jnp.floor(u)
         fi = u - base
         # Snap offsets within float32 noise of a lattice point (exact whole-voxel moves).
-        up = fi > 1.0 - SNAP
+        up = fi > 1.0 - _SNAP
         base = jnp.where(up, base + 1.0, base)
-        f.append(jnp.where(up | (fi < SNAP), jnp.float32(0), fi))
+        f.append(jnp.where(up | (fi < _SNAP), jnp.float32(0), fi))
         key0 = base.astype(jnp.int32) + inp.K_s[i]
         for k in (key0, key0 + 1):
             q = jnp.right_shift(k, 3) - wb[:, i, None]
@@ -116,15 +135,16 @@ def _brick_prune(lo, known):
     i = jnp.arange(8, dtype=jnp.int32)
     emit = (k4 & ((i == 0) | ~u8) & ((i[:, None] == 0) | ~u64)
             & ((i[:, None, None] == 0) | ~u512))
-    return emit.reshape(nb, BRICK_VOXELS), jnp.broadcast_to(depth, l4.shape).reshape(nb, BRICK_VOXELS)
+    depth = jnp.broadcast_to(depth, l4.shape)
+    return emit.reshape(nb, BRICK_VOXELS), depth.reshape(nb, BRICK_VOXELS)
 
 
 def _padding_rows(n: int, hi, depth):
     """``n`` padding rows of the kernel's output: ``(code (n, 2), depth (n,), log_odds (n,))``.
     The fill values are traced arguments, so XLA does not constant-fold (and embed) large
     buffers at compile time."""
-    return (jnp.zeros((n, 2), jnp.int32).at[:, 0].set(hi), jnp.full((n,), depth, jnp.int32),
-            jnp.zeros((n,), jnp.float32))
+    return OutputLeaves(jnp.zeros((n, 2), jnp.int32).at[:, 0].set(hi),
+                        jnp.full((n,), depth, jnp.int32), jnp.zeros((n,), jnp.float32))
 
 
 @functools.partial(jax.jit, static_argnames=("capacity",))
@@ -136,8 +156,8 @@ def _empty_output(hi, depth, *, capacity: int):
 @functools.partial(jax.jit, static_argnames=("capacity",))
 def _grow_output(bufs, hi, depth, *, capacity: int):
     """The kernel's output buffers extended with padding rows to ``capacity``."""
-    pad = _padding_rows(capacity - bufs[0].shape[0], hi, depth)
-    return tuple(jnp.concatenate([b, p]) for b, p in zip(bufs, pad))
+    pad = _padding_rows(capacity - bufs.code.shape[0], hi, depth)
+    return OutputLeaves(*(jnp.concatenate([b, p]) for b, p in zip(bufs, pad)))
 
 
 def _chunk_leaves(inp: KernelInputs, i, chunk: int):
@@ -166,7 +186,7 @@ def _chunk_leaves(inp: KernelInputs, i, chunk: int):
 @functools.partial(jax.jit, static_argnames=("chunk",), donate_argnums=(1,))
 def transform_kernel(inp: KernelInputs, bufs, offset, start, *, chunk):
     """Loop over chunks of destination bricks from chunk ``start``; append each chunk's
-    brick-pruned leaves to ``bufs`` (``_empty_output``, donated) from row ``offset``.
+    brick-pruned leaves to ``bufs`` (``OutputLeaves``, donated) from row ``offset``.
 
     Stops at the first chunk whose leaves do not fit (nothing of it is committed; its
     partial writes lie past ``offset`` and are overwritten when the caller resumes with
@@ -175,16 +195,16 @@ def transform_kernel(inp: KernelInputs, bufs, offset, start, *, chunk):
     ``_resample_chunk``).
     """
     n_chunks = inp.bkeys.shape[0] // chunk
-    cap = bufs[0].shape[0]
+    cap = bufs.code.shape[0]
 
-    def step(carry):
-        (out_code, out_depth, out_lo), offset, i, misses, _ = carry
+    def step(state: _LoopState) -> _LoopState:
+        (out_code, out_depth, out_lo), offset, i = state.bufs, state.offset, state.chunk
         lo, emit, depth, miss = _chunk_leaves(inp, i, chunk)
         bk = jax.lax.dynamic_slice_in_dim(inp.bkeys, i * chunk, chunk)
         bwords = morton.keys_to_words(bk * BRICK_EDGE)  # (B, 2); local index fills low 9 bits
+        local = jnp.arange(BRICK_VOXELS, dtype=jnp.int32)[None, :]
         vcode = jnp.stack([jnp.broadcast_to(bwords[:, None, 0], (chunk, BRICK_VOXELS)),
-                           bwords[:, None, 1] | jnp.arange(BRICK_VOXELS, dtype=jnp.int32)[None, :]],
-                          -1)
+                           bwords[:, None, 1] | local], -1)
         emit = emit.reshape(-1)
         n_emit = jnp.sum(emit, dtype=jnp.int32)
         # Append the emitted leaves in order: one scatter per array (past capacity: dropped).
@@ -193,16 +213,17 @@ def transform_kernel(inp: KernelInputs, bufs, offset, start, *, chunk):
         out_depth = out_depth.at[pos].set(depth.reshape(-1), mode="drop")
         out_lo = out_lo.at[pos].set(lo.reshape(-1), mode="drop")
         fits = offset + n_emit <= cap
-        return ((out_code, out_depth, out_lo), jnp.where(fits, offset + n_emit, offset),
-                jnp.where(fits, i + 1, i), misses + jnp.where(fits, miss, 0), ~fits)
+        return _LoopState(OutputLeaves(out_code, out_depth, out_lo),
+                          jnp.where(fits, offset + n_emit, offset), jnp.where(fits, i + 1, i),
+                          state.misses + jnp.where(fits, miss, 0), ~fits)
 
     # A loop of dynamic length over the chunks holding valid bricks: padding chunks cost
     # nothing.
     n_valid = jnp.minimum((inp.n_bricks + chunk - 1) // chunk, n_chunks)
-    bufs, offset, nxt, misses, _ = jax.lax.while_loop(
-        lambda cr: (cr[2] < n_valid) & ~cr[4], step,
-        (bufs, jnp.int32(offset), jnp.int32(start), jnp.int32(0), jnp.bool_(False)))
-    return bufs, offset, nxt, misses
+    end = jax.lax.while_loop(
+        lambda state: (state.chunk < n_valid) & ~state.full, step,
+        _LoopState(bufs, jnp.int32(offset), jnp.int32(start), jnp.int32(0), jnp.bool_(False)))
+    return end.bufs, end.offset, end.chunk, end.misses
 
 
 def run_kernel(plan: Plan) -> tuple[OccupancyMap, int]:
@@ -224,7 +245,7 @@ def run_kernel(plan: Plan) -> tuple[OccupancyMap, int]:
             break
         estimate = offset / max(start, 1) * n_chunks * 1.05 + plan.chunk * BRICK_VOXELS
         bufs = _grow_output(bufs, *fills, capacity=quarter_octave_capacity(
-            max(estimate, 1.25 * bufs[0].shape[0]), minimum=64))
+            max(estimate, 1.25 * bufs.code.shape[0]), minimum=64))
     if misses:
         raise RuntimeError(f"transform_map: {misses} interpolation neighbours fell outside "
                            "their planned source window (a bug; please report the transform)")
