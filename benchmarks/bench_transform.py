@@ -193,13 +193,15 @@ def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
         cpus.append(time.process_time() - c0)  # all threads
         # Its phases, timed apart.
         t0 = time.perf_counter()
-        plan = resample._plan(m, resample.check_rigid_transform(T), method, "probability", 128, None)
-        jax.block_until_ready(plan.args)
+        plan = resample._bricks.make_plan(m, resample.check_rigid_transform(T), method,
+                                         "probability", 128, None)
+        jax.block_until_ready(plan.inputs)
         t1 = time.perf_counter()
-        raw, _ = resample._run_kernel(plan)
+        raw, _ = resample._kernel.run_kernel(plan)
         jax.block_until_ready(raw.code)
         t2 = time.perf_counter()
-        jax.block_until_ready(resample._run(plan).code)  # kernel again + prune
+        again = resample._kernel.run_kernel(plan)  # kernel again + prune
+        jax.block_until_ready(resample._merge.merge_whole_bricks(*again).code)
         t3 = time.perf_counter()
         plans.append(t1 - t0)
         kernels.append(t2 - t1)
@@ -208,7 +210,7 @@ def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
     vox_known = int(np.sum(8.0 ** (16 - np.asarray(out.depth[:n_out]).astype(np.float64))))
     n_src = m.num_leaves
     src_bytes = n_src * 16
-    dense_bytes = plan.args[1].nbytes + plan.args[2].nbytes
+    dense_bytes = plan.inputs.table.nbytes + plan.inputs.A.nbytes
     out_bytes = n_out * 16
     return dict(tiles=tiles, src_leaves=n_src, out_leaves=n_out, dest_bricks=plan.n_dest_bricks,
                 dense_bricks=plan.n_dense_bricks, dest_voxels=vox_known,

@@ -115,3 +115,19 @@ def padding_rows(capacity: int):
 def float_bits(x):
     """The IEEE-754 bits of ``x`` as float32, as int32 (to carry floats in integer sorts)."""
     return jax.lax.bitcast_convert_type(x.astype(jnp.float32), jnp.int32)
+
+
+# --- added for resample
+
+__all__ += ["quarter_octave_capacity"]
+
+
+def quarter_octave_capacity(n: int, minimum: int) -> int:
+    """Smallest ``q 2^k >= max(n, minimum, 4)`` with ``q`` in 4..8 (four steps per octave).
+
+    For work arrays whose padding costs per row (every DDA step runs on every padded ray;
+    large tables are paid in first-touch pages): pads by <= 25 % instead of <= 50 % for
+    ``bucket_capacity``, at the price of more distinct compiled shapes."""
+    n = max(int(n), int(minimum), 4)
+    k = max(n.bit_length() - 3, 0)
+    return -(-n // (1 << k)) * (1 << k)

@@ -48,7 +48,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import morton
-from .map import OccupancyMap, bucket_capacity
+from ._ops import bucket_capacity, quarter_octave_capacity
+from .map import OccupancyMap
 from .tree import apply_voxel_updates
 
 __all__ = ["ScanUpdate", "CapacityPlan", "compute_update", "insert_point_cloud",
@@ -85,14 +86,6 @@ _BRICK = 1 << _BRICK_BITS
 _BRICK_CELLS = _BRICK ** 3
 
 
-def _quarter_octave(n: int, minimum: int) -> int:
-    """Smallest ``{4, 5, 6, 7} * 2^k >= max(n, minimum)``: point capacities pad by <= 25 %
-    (every DDA step works on every padded ray)."""
-    n = max(int(n), int(minimum), 4)
-    k = max(n.bit_length() - 3, 0)
-    return -(-n // (1 << k)) * (1 << k)
-
-
 @dataclasses.dataclass
 class CapacityPlan:
     """High-water marks of the static sizes used by ``compute_update`` (mutable, host only).
@@ -108,7 +101,7 @@ class CapacityPlan:
     marked_bricks: int = 0
 
     def grow(self, name: str, n: int, minimum: int) -> int:
-        bucket = _quarter_octave if name == "points" else bucket_capacity
+        bucket = quarter_octave_capacity if name == "points" else bucket_capacity
         value = max(getattr(self, name), bucket(n, minimum))
         setattr(self, name, value)
         return value

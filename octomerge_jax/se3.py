@@ -276,3 +276,30 @@ def project_to_rigid(T) -> np.ndarray:
     T[:3, :3] = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
     T[3] = (0.0, 0.0, 0.0, 1.0)
     return T
+
+
+# --- added for resample
+
+__all__ += ["check_rigid_transform"]
+
+
+def check_rigid_transform(T, name: str = "T_dst_src") -> np.ndarray:
+    """One rigid transform, validated on the host (NumPy only), as a ``(4, 4)`` float64 array.
+
+    Accepts ``(4, 4)`` homogeneous or ``(3, 4)`` ``[R | t]`` matrices (translation in metres).
+    Raises ``ValueError`` naming ``name`` for another shape (including a batch), a NaN or
+    infinite entry, or any failure of ``check_rigid`` (tolerance 1e-4: bottom row, orthonormal
+    rotation with determinant +1; scale, shear and reflections are rejected). The returned
+    homogeneous row is exactly ``[0, 0, 0, 1]``.
+    """
+    A = np.asarray(T, dtype=np.float64)
+    if A.shape == (3, 4):
+        A = np.vstack([A, [0.0, 0.0, 0.0, 1.0]])
+    if A.shape != (4, 4):
+        raise ValueError(f"{name}: expected a (4, 4) or (3, 4) rigid transform, "
+                         f"got shape {A.shape}")
+    if not np.all(np.isfinite(A)):  # check_rigid says "non-finite"; callers match "NaN"
+        raise ValueError(f"{name}: contains NaN or infinite entries: {A.tolist()}")
+    A = check_rigid(A, name).copy()
+    A[3] = [0.0, 0.0, 0.0, 1.0]
+    return A

@@ -1,4 +1,4 @@
-"""Tests for ``resample.py``: map transformation (Alg. 4-7, corrected) and ``sample``.
+"""Tests for ``resample``: map transformation (Alg. 4-7, corrected) and ``sample``.
 
 References are independent brute-force NumPy code on small maps: maps are expanded into
 ``{finest key: log-odds}`` dictionaries and Alg. 7 is run voxel by voxel over the Alg. 4
@@ -397,10 +397,10 @@ def test_in_place_brick_merge_compaction(seed):
     drop = np.unique(np.concatenate([rng.choice(count, 20, replace=False), [0, 7, 8, count - 1]]))
     head = np.setdiff1d(rng.choice(count, 6, replace=False), drop)
     head_depth = rng.integers(5, 13, head.size).astype(np.int32)
-    pad = lambda x, fill: resample._padded(x, np.int32, fill)
-    out = resample._apply_brick_merges(jnp.asarray(code), jnp.asarray(depth), jnp.asarray(lo),
-                                       jnp.int32(count), pad(drop, cap), pad(head, cap),
-                                       pad(head_depth, 16), step=step)
+    pad = lambda x, fill: resample._merge._padded(x, np.int32, fill)
+    out = resample._merge._apply_brick_merges(
+        jnp.asarray(code), jnp.asarray(depth), jnp.asarray(lo), jnp.int32(count),
+        pad(drop, cap), pad(head, cap), pad(head_depth, 16), step=step)
     ref_depth = depth.copy()
     ref_depth[head] = head_depth
     keep = np.setdiff1d(np.arange(count), drop)
@@ -421,14 +421,14 @@ def test_no_recompilation_within_bucket():
     T1 = make_T(rot("z", 0.3), (0.01, 0.02, 0.03))
     T2 = make_T(rot("z", 0.31), (0.02, 0.0, 0.01))
     resample.transform_map(m1, T1, out_capacity=1 << 15)
-    n = resample._transform_kernel._cache_size()
+    n = resample._kernel.transform_kernel._cache_size()
     resample.transform_map(m2, T2, out_capacity=1 << 15)
-    assert resample._transform_kernel._cache_size() == n
+    assert resample._kernel.transform_kernel._cache_size() == n
     pts = jnp.zeros((NP, 3), jnp.float32)
     resample.sample(m1, pts)
-    n = resample._sample._cache_size()
+    n = resample._interp._sample._cache_size()
     resample.sample(m2, pts + 0.3)
-    assert resample._sample._cache_size() == n
+    assert resample._interp._sample._cache_size() == n
 
 
 # ----------------------------------------------------------------------------- sample

@@ -1,0 +1,316 @@
+"""Host plan of ``transform_map``: which destination bricks the transformed source can reach,
+the brick-indexed view of the source, and each destination brick's source window.
+
+A *brick* is a depth-13 node: 8^3 finest voxels, key ``finest key >> 3`` per axis; voxels
+inside a brick are in local Morton order (index ``0..511``). Coordinates here are in *key
+units*: voxel centres at integer ``u = x / res + 32768 - 0.5``. The plan ends in ``Plan``, the
+device inputs of the jitted kernel (``_kernel.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import morton
+from .._ops import bucket_capacity, quarter_octave_capacity
+from ..map import OccupancyMap
+from ..se3 import check_rigid_transform
+from ._interp import CORNERS, KEY_MAX, mode_index
+
+__all__ = [
+    "BRICK_DEPTH",
+    "BRICK_EDGE",
+    "BRICK_VOXELS",
+    "LOCAL_OFFSETS",
+    "KernelInputs",
+    "Plan",
+    "make_plan",
+    "transformed_bounds",
+]
+
+BRICK_DEPTH = 13  # a brick is a depth-13 node: 8^3 finest voxels
+BRICK_EDGE = 8  # voxels per brick edge
+BRICK_VOXELS = 512  # voxels per brick
+_D = morton.TREE_DEPTH
+_WINDOW_MARGIN = 0.05  # voxels; covers float32 rounding of the kernel's inverse map
+
+
+def _compact9(v):
+    return (v & 1) | ((v >> 2) & 2) | ((v >> 4) & 4)
+
+
+# (512, 3) int32 voxel offsets inside a brick, in local Morton order
+LOCAL_OFFSETS = np.stack([_compact9(np.arange(BRICK_VOXELS) >> a) for a in range(3)],
+                         axis=-1).astype(np.int32)
+
+
+class KeyTransform(NamedTuple):
+    """The forward map ``u' = R u + t_key`` of ``T_dst_src`` in key units."""
+
+    R: np.ndarray  # (3, 3) float64 rotation
+    t_key: np.ndarray  # (3,) float64 translation [voxels]
+
+
+class SourceView(NamedTuple):
+    """The brick-indexed view of the source map (``_source_view``)."""
+
+    table: np.ndarray  # (rows * 512,) float32 log-odds, one brick per row, NaN = unknown
+    bricks: np.ndarray  # (n, 3) int64 key of every brick a leaf covers
+    brick_rows: np.ndarray  # (n,) int32 table row of each brick
+    nan_row: int  # the first all-NaN row of ``table``
+    n_dense: int  # rows 0..n_dense-1 hold bricks with leaves finer than a brick
+
+
+class KernelInputs(NamedTuple):
+    """Device inputs of the transform kernel; keys relative to the anchors ``K_d``, ``K_s``
+    keep float32 precision (``u_rel = A (k - K_d) + c``, a source key offset from ``K_s``)."""
+
+    m: OccupancyMap  # the source map (clamp bounds)
+    table: jax.Array  # (rows * 512,) float32 ``SourceView.table``; its last row is NaN
+    A: jax.Array  # (3, 3) float32 R^T: destination -> source key offsets
+    c: jax.Array  # (3,) float32 source key of K_d minus K_s (|c| <= 0.5) [voxels]
+    K_d: jax.Array  # (3,) int32 destination anchor key
+    K_s: jax.Array  # (3,) int32 source anchor key
+    bkeys: jax.Array  # (b_cap, 3) int32 destination brick keys, Morton order, then padding
+    wb: jax.Array  # (b_cap, 3) int32 first source brick of each window (3x3x3 bricks)
+    wrows: jax.Array  # (b_cap * 27,) int32 table offset (row * 512) of window brick x + 3 y + 9 z
+    n_bricks: jax.Array  # () int32 valid rows of bkeys
+    mode: jax.Array  # () int32 blend rule (``_interp.mode_index``)
+
+
+class Plan(NamedTuple):
+    """Host planning result of ``transform_map``."""
+
+    inputs: KernelInputs  # device arrays of the kernel
+    chunk: int  # destination bricks per loop step (static)
+    out_capacity: int  # rows of the kernel's first output buffers
+    n_dest_bricks: int  # destination bricks with a non-empty source window
+    n_dense_bricks: int  # source bricks stored as dense table rows
+
+
+@jax.jit
+def _key_bounds(m: OccupancyMap):
+    """Per-axis min key and max key + 1 ``(3,) int32`` over the leaves' cubes (on device:
+    no host copy of the leaves)."""
+    valid = m.valid_mask()[:, None]
+    keys = morton.words_to_keys(m.code)
+    end = keys + jnp.left_shift(1, _D - m.depth)[:, None]
+    return (jnp.min(jnp.where(valid, keys, KEY_MAX), axis=0),
+            jnp.max(jnp.where(valid, end, 0), axis=0))
+
+
+def transformed_bounds(m: OccupancyMap, T_dst_src) -> tuple[np.ndarray, np.ndarray]:
+    """Alg. 4: axis-aligned bounds ``(p_min, p_max)`` [m, float64 (3,)] in frame ``dst`` of
+    the source map's leaf extent (OctoMap ``getMetricMin/Max``) after ``T_dst_src``.
+
+    The 8 corners of the source bounding box are transformed and their extremes taken.
+    Raises ``ValueError`` for an empty map or an invalid transform.
+    """
+    T = check_rigid_transform(T_dst_src)
+    if m.num_leaves == 0:
+        raise ValueError("transformed_bounds: the map has no leaves")
+    kmin, kmax = (np.asarray(k, np.float64) for k in _key_bounds(m))
+    bmin = (kmin - morton.KEY_OFFSET) * m.resolution
+    bmax = (kmax - morton.KEY_OFFSET) * m.resolution
+    corners = np.array([[bmax[0] if c & 1 else bmin[0], bmax[1] if c & 2 else bmin[1],
+                         bmax[2] if c & 4 else bmin[2]] for c in range(8)])
+    moved = corners @ T[:3, :3].T + T[:3, 3]
+    return moved.min(axis=0), moved.max(axis=0)
+
+
+def _aligned_full(shape, fill, dtype, align: int = 64) -> np.ndarray:
+    """``np.full`` whose data start on an ``align``-byte boundary (zero-copy to XLA:CPU)."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape))
+    raw = np.empty(n * dtype.itemsize + align, np.uint8)
+    start = -raw.ctypes.data % align
+    out = raw[start:start + n * dtype.itemsize].view(dtype).reshape(shape)
+    out.fill(fill)
+    return out
+
+
+def _to_device(x: np.ndarray, like: jax.Array) -> jax.Array:
+    """Host array -> an array on the device of ``like``. On a CPU device an aligned array is
+    shared, not copied; elsewhere a plain transfer."""
+    devices = like.devices() if isinstance(like, jax.Array) else set()
+    device = next(iter(devices)) if len(devices) == 1 else None
+    if device is not None and device.platform == "cpu" and x.ctypes.data % 64 == 0:
+        shared = jnp.from_dlpack(x)
+        return shared if shared.devices() == devices else jax.device_put(shared, device)
+    return jax.device_put(x, device)
+
+
+def _source_view(m: OccupancyMap) -> SourceView:
+    """The brick-indexed view of the source (see ``SourceView``).
+
+    ``table`` holds, in local Morton order, one dense row per brick that contains leaves finer
+    than a brick, then one constant row per distinct value of the leaves that cover whole
+    bricks (depth <= 13), then NaN rows. Memory: 2 KiB per dense brick. Works on the int32
+    code words (hi, lo: 24 bits each; a brick is ``hi, lo >> 9``).
+    """
+    n = m.num_leaves
+    words = np.asarray(m.code)[:n]
+    depth = np.asarray(m.depth)[:n]
+    lo = np.asarray(m.log_odds)[:n]
+    fine = depth > BRICK_DEPTH
+    hi_w, lo_w, d, v = words[fine, 0], words[fine, 1], depth[fine], lo[fine]
+    # leaves are Morton-sorted, so a brick's leaves are contiguous
+    first = np.ones(hi_w.shape, bool)
+    np.not_equal(lo_w[1:] >> 9, lo_w[:-1] >> 9, out=first[1:])
+    first[1:] |= hi_w[1:] != hi_w[:-1]
+    n_db = int(np.count_nonzero(first))
+    uniq, inv = np.unique(lo[~fine], return_inverse=True)
+    rows = quarter_octave_capacity(n_db + uniq.size + 1, minimum=64)
+    table = _aligned_full((rows, BRICK_VOXELS), np.nan, np.float32)
+    itype = np.int32 if rows * BRICK_VOXELS < 2 ** 31 else np.int64
+    flat = np.cumsum(first, dtype=itype)  # slot + 1, then the voxel index in the table
+    flat -= 1
+    flat *= BRICK_VOXELS
+    flat += lo_w & (BRICK_VOXELS - 1)
+    for depth_l in (14, 15, 16):
+        sel = d == depth_l
+        if sel.any():
+            span = 8 ** (_D - depth_l)
+            table.reshape(-1, span)[flat[sel] // span] = v[sel, None]
+    table[n_db:n_db + uniq.size] = uniq[:, None]
+    keys = [morton.codes_to_keys(morton.join_codes(np.stack([hi_w[first], lo_w[first]], -1)))
+            .astype(np.int64) >> 3]
+    brick_rows = [np.arange(n_db, dtype=np.int32)]
+    ck, cd = morton.join_codes(words[~fine]), depth[~fine]
+    crow = n_db + inv.reshape(-1).astype(np.int32)
+    for dl in np.unique(cd):  # a depth-d leaf covers 8^(13 - d) bricks
+        sel = cd == dl
+        w = 1 << (BRICK_DEPTH - int(dl))
+        g = np.stack(np.meshgrid(*[np.arange(w)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        base = morton.codes_to_keys(ck[sel]).astype(np.int64) >> 3
+        keys.append((base[:, None, :] + g[None]).reshape(-1, 3))
+        brick_rows.append(np.repeat(crow[sel], g.shape[0]))
+    return SourceView(table.reshape(-1), np.concatenate(keys), np.concatenate(brick_rows),
+                      n_db + uniq.size, n_db)
+
+
+def _plan_dest_bricks(src_bkeys: np.ndarray, T_key: KeyTransform) -> np.ndarray:
+    """Morton-sorted ``(n, 3)`` int64 keys of destination bricks whose voxel centres may map
+    back into one of the source bricks ``src_bkeys (m, 3)``."""
+    R, t_key = T_key
+    if src_bkeys.shape[0] == 0:
+        return np.zeros((0, 3), np.int64)
+    centre = (src_bkeys.astype(np.float64) * BRICK_EDGE + 3.5) @ R.T + t_key
+    half = 4.0 * np.abs(R).sum(axis=1) + 1e-3  # image of the brick cube [8b - .5, 8b + 7.5]
+    bmin = np.floor_divide(np.ceil(centre - half), BRICK_EDGE).astype(np.int64)
+    bmax = np.floor_divide(np.floor(centre + half), BRICK_EDGE).astype(np.int64)
+    lo = np.maximum(bmin.min(axis=0), 0)
+    hi = np.minimum(bmax.max(axis=0), KEY_MAX // BRICK_EDGE - 1)
+    if np.any(hi < lo):
+        return np.zeros((0, 3), np.int64)
+    ext = hi - lo + 1
+    total = int(np.prod(ext))
+    itype = np.int32 if total < 2 ** 31 else np.int64
+    # candidates bmin + {0, 1, 2} per axis (an image spans <= 3 bricks), kept where <= bmax
+    # and inside the key range; linear index x + ext_x (y + ext_y z), built axis by axis
+    q = [(bmin[:, a, None] + np.arange(3) - lo[a]).astype(itype) for a in range(3)]
+    ok = [(q[a] <= bmax[:, a, None] - lo[a]) & (q[a] >= 0) & (q[a] < ext[a]) for a in range(3)]
+    lin = (q[2][:, :, None, None] * itype(ext[1]) + q[1][:, None, :, None]) * itype(ext[0]) \
+        + q[0][:, None, None, :]
+    lin = lin[ok[2][:, :, None, None] & ok[1][:, None, :, None] & ok[0][:, None, None, :]]
+    if total <= (1 << 28):  # a brick-level bitmap (1 byte per 512 voxels of the bounding box)
+        bitmap = np.zeros(total, bool)
+        bitmap[lin] = True
+        u = np.flatnonzero(bitmap)
+    else:
+        u = np.unique(lin)
+    keys = np.stack([u % ext[0], (u // ext[0]) % ext[1], u // (ext[0] * ext[1])], axis=-1) + lo
+    order = np.argsort(morton.keys_to_codes(keys.astype(np.uint64) * BRICK_EDGE), kind="stable")
+    return keys[order]
+
+
+def _dest_windows(dest, T_key: KeyTransform, view: SourceView):
+    """Each destination brick's source window, 3x3x3 source bricks from ``wb``.
+
+    ``dest (n, 3)``: destination brick keys. Returns ``(wb (n, 3) int64, rows (n, 27) int32)``,
+    window brick ``x + 3 y + 9 z`` -> table row (``view.nan_row`` where no leaf covers it).
+    Every neighbour key ``k0 + {0, 1}`` of every voxel lies in the window: the inverse image
+    of a brick's centres spans <= 7 sqrt(3) < 12.2 voxels per axis, so with the margin the
+    neighbours span <= 15 keys from at most 7 into the first brick.
+    """
+    R, t_key = T_key
+    bricks, brick_rows, nan_row = view.bricks, view.brick_rows, view.nan_row
+    n = dest.shape[0]
+    if n == 0 or bricks.shape[0] == 0:
+        return np.zeros((n, 3), np.int64), np.full((n, 27), nan_row, np.int32)
+    umin = np.full((n, 3), np.inf)
+    for corner in CORNERS:  # the extremes of an affine map over a cube are at its corners
+        k = (dest * BRICK_EDGE + 7 * corner).astype(np.float64)
+        umin = np.minimum(umin, (k - t_key) @ R)  # R^T (k - t_key), row-wise
+    wb = np.floor_divide(np.floor(umin - _WINDOW_MARGIN).astype(np.int64), BRICK_EDGE)
+    # Window bricks as linear indices into the source bricks' bounding box.
+    lo = bricks.min(axis=0)
+    ext = bricks.max(axis=0) - lo + 1
+    q = [wb[:, a, None] + np.arange(3) - lo[a] for a in range(3)]  # (n, 3) per axis
+    inside = [(qa >= 0) & (qa < ext[a]) for a, qa in enumerate(q)]
+    lin = ((q[2][:, :, None, None] * ext[1] + q[1][:, None, :, None]) * ext[0]
+           + q[0][:, None, None, :])
+    ok = inside[2][:, :, None, None] & inside[1][:, None, :, None] & inside[0][:, None, None, :]
+    lin, ok = lin.reshape(n, 27), ok.reshape(n, 27)  # window brick x + 3 y + 9 z
+    src = ((bricks[:, 2] - lo[2]) * ext[1] + bricks[:, 1] - lo[1]) * ext[0] + bricks[:, 0] - lo[0]
+    if np.prod(ext) <= max(1 << 22, 8 * src.size):  # a dense grid of rows (4 B per brick)
+        grid = np.full(int(np.prod(ext)), nan_row, np.int32)
+        grid[src] = brick_rows
+        rows = grid[np.where(ok, lin, 0)]
+    else:  # sparse source: binary search in the sorted bricks
+        order = np.argsort(src)
+        i = np.minimum(np.searchsorted(src[order], lin), src.size - 1)
+        ok &= src[order][i] == lin
+        rows = brick_rows[order][i]
+    return wb, np.where(ok, rows, nan_row).astype(np.int32)
+
+
+def _key_transform(T, resolution) -> KeyTransform:
+    """``T (4, 4)`` in key units, for voxel-centre coordinates ``u = x / res + 32768 - 0.5``."""
+    R = T[:3, :3]
+    o = morton.KEY_OFFSET - 0.5
+    t_key = T[:3, 3] / resolution + o - R @ np.full(3, o)
+    return KeyTransform(R, t_key)
+
+
+def make_plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: int,
+              out_capacity: int | None) -> Plan:
+    """Destination bricks, the source's brick table and the key-frame constants for
+    ``transform_map(m, T, method, space=space)`` with ``chunk`` bricks per loop step;
+    ``out_capacity`` ``None``: a guess from the leaf and brick counts."""
+    T_key = _key_transform(T, m.resolution)
+    R, t_key = T_key
+    view = _source_view(m)
+    dest = _plan_dest_bricks(view.bricks, T_key)
+    wb, rows = _dest_windows(dest, T_key, view)
+    live = np.any(rows != view.nan_row, axis=1)  # an all-unknown window gives nothing
+    dest, wb, rows = dest[live], wb[live], rows[live]
+    # Relative coordinates keep float32 precision: u_rel = R^T (k - K_d) + c, with
+    # K_s = round(R^T (K_d - t_key)) so that |c| <= 0.5.
+    n_b = dest.shape[0]
+    K_d = (np.round(dest.mean(axis=0) * BRICK_EDGE).astype(np.int64) if n_b
+           else np.zeros(3, np.int64))
+    u_s = R.T @ (K_d.astype(np.float64) - t_key)
+    K_s = np.round(u_s).astype(np.int64)
+    c = u_s - K_s
+    b_cap = max(bucket_capacity(n_b, minimum=1024), chunk)
+    b_cap = int(math.ceil(b_cap / chunk) * chunk)
+    bkeys = np.zeros((b_cap, 3), np.int32)
+    bkeys[:n_b] = dest
+    wbp = np.zeros((b_cap, 3), np.int32)
+    wbp[:n_b] = wb
+    wrows = np.full((b_cap, 27), view.nan_row * BRICK_VOXELS, np.int32)
+    wrows[:n_b] = rows * BRICK_VOXELS
+    if out_capacity is None:
+        out_capacity = quarter_octave_capacity(2 * m.num_leaves + 8 * n_b, minimum=1 << 15)
+    inputs = KernelInputs(
+        m, _to_device(view.table, m.log_odds), jnp.asarray(R.T, jnp.float32),
+        jnp.asarray(c, jnp.float32), jnp.asarray(K_d, jnp.int32), jnp.asarray(K_s, jnp.int32),
+        jnp.asarray(bkeys), jnp.asarray(wbp), jnp.asarray(wrows.reshape(-1)), jnp.int32(n_b),
+        jnp.int32(mode_index(method, space)))
+    return Plan(inputs, chunk, int(out_capacity), n_b, view.n_dense)
