@@ -7,15 +7,18 @@ figures, and prints the thesis's errors eps_r / eps_t before and after ICP.
 
 from __future__ import annotations
 
-from ..config import DEMO_SCENES, REFINE_CHOICES
-
 import argparse
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ..config import DEMO_SCENES, REFINE_CHOICES, MergeConfig, load_config
+from ..io import save
+from ..pipeline import merge, transform_from_xyz_rpy
 from ._common import CliError
+from .merge import write_figures
+from .plots import plot_merge_comparison
 
 EPILOG = """examples:
   octomerge demo                                  # writes ./octomerge-demo/
@@ -54,8 +57,6 @@ def register(subparsers) -> None:
 
 
 def _config(args):
-    from ..config import MergeConfig, load_config
-
     cfg = load_config(args.config) if args.config else MergeConfig()
     demo = {}
     for key in ("scene", "resolution", "spacing", "seed"):
@@ -72,8 +73,6 @@ def _config(args):
 
 def perturbed_guess(T_true, error_xyz, error_rpy_rad) -> np.ndarray:
     """The erroneous guess: ``T_true``'s xyz / rpy plus the errors (host, float64)."""
-    from ..pipeline import transform_from_xyz_rpy
-
     T = np.asarray(T_true, np.float64)
     R = T[:3, :3]
     roll = np.arctan2(R[2, 1], R[2, 2])
@@ -85,9 +84,7 @@ def perturbed_guess(T_true, error_xyz, error_rpy_rad) -> np.ndarray:
 
 
 def run(args) -> int:
-    from ..io import save
-    from ..pipeline import merge
-    from ..sim import make_two_robot_maps
+    from ..sim import make_two_robot_maps  # trimesh and scipy: loaded by this command only
 
     try:
         cfg = _config(args)
@@ -113,9 +110,6 @@ def run(args) -> int:
     print(report.summary())
     written = ["map1.bt", "map2.bt", "merged.bt", "report.json"]
     if not args.no_figures:
-        from ..plots import plot_merge_comparison
-        from .merge import write_figures
-
         write_figures(report, merged, out / "overlap_before_after.png", out / "merged_map.png",
                       out / "icp_convergence.png" if report.icp is not None else None, cfg, T_true)
         written += ["overlap_before_after.png", "merged_map.png"]
