@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import se3
 from ..config import DEMO_SCENES, REFINE_CHOICES, MergeConfig, load_config
 from ..io import save
 from ..pipeline import merge, transform_from_xyz_rpy
@@ -73,12 +74,8 @@ def _config(args):
 
 def perturbed_guess(T_true, error_xyz, error_rpy_rad) -> np.ndarray:
     """The erroneous guess: ``T_true``'s xyz / rpy plus the errors (host, float64)."""
-    T = np.asarray(T_true, np.float64)
-    R = T[:3, :3]
-    roll = np.arctan2(R[2, 1], R[2, 2])
-    pitch = np.arctan2(-R[2, 0], np.hypot(R[2, 1], R[2, 2]))
-    yaw = np.arctan2(R[1, 0], R[0, 0])
-    x, y, z = T[:3, 3] + np.asarray(error_xyz, np.float64)
+    x, y, z, roll, pitch, yaw = se3.to_xyz_rpy(np.asarray(T_true, np.float64), xp=np)
+    x, y, z = np.array([x, y, z]) + np.asarray(error_xyz, np.float64)
     return transform_from_xyz_rpy(x, y, z, roll + error_rpy_rad[0], pitch + error_rpy_rad[1],
                                   yaw + error_rpy_rad[2])
 
@@ -129,10 +126,7 @@ def run(args) -> int:
     print(f"epsilon after  ICP: eps_r = {report.epsilon_r:.4f}, eps_t = {report.epsilon_t:.4f} m"
           "   (thesis: coherent below 0.25 / 0.9)")
     print(f"wrote {out}/: {', '.join(written)}  ({time.perf_counter() - t0:.1f} s)")
-    x, y, z = T_init[:3, 3]
-    R = T_init[:3, :3]
-    rpy = (np.arctan2(R[2, 1], R[2, 2]), np.arctan2(-R[2, 0], np.hypot(R[2, 1], R[2, 2])),
-           np.arctan2(R[1, 0], R[0, 0]))
+    x, y, z, *rpy = se3.to_xyz_rpy(T_init, xp=np)
     print("same merge from the files:\n  octomerge merge "
           f"{out / 'map1.bt'} {out / 'map2.bt'} {out / 'merged_again.bt'} "
           f"--xyz {x:.4f} {y:.4f} {z:.4f} --rpy {rpy[0]:.4f} {rpy[1]:.4f} {rpy[2]:.4f}")
