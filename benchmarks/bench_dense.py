@@ -6,7 +6,7 @@
    a pi/4 yaw plus an offset): for each row the initial eps_r / eps_t (eqs. 7.2 / 7.3), then the
    final rotation-angle error [rad] / translation distance [m] and status of ICP (Alg. 3 on the
    occupied voxel centres, bbox overlap as the pipeline), dense alignment, ICP then dense (every
-   level), and ``merge(refine="icp+dense")``'s registration (``refine.register``: dense from the
+   level), and ``merge(refine="icp+dense")``'s registration (``pipeline.register``: dense from the
    level of ICP's last correspondence distance, from the guess if that fails); and how many rows
    each brings within one voxel and 0.01 rad of the truth.
 
@@ -16,7 +16,6 @@ Prints markdown tables."""
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import platform
 import statistics
@@ -27,13 +26,12 @@ import functools
 
 import numpy as np
 
-from octomerge_jax import tree
-from octomerge_jax.registration import dense, metrics, overlap
+from octomerge_jax import MergeConfig, tree
+from octomerge_jax.pipeline import register
+from octomerge_jax.registration import icp, metrics, overlap, pad_points, prepare_alignment, solve_alignment
 from octomerge_jax.sim import surface_samples
 from octomerge_jax import se3
 xyz_rpy64 = functools.partial(se3.from_xyz_rpy, xp=np)  # float64 ground truth
-
-icp_mod = importlib.import_module("octomerge_jax.registration.icp")
 
 T_TRUE = xyz_rpy64(1.0, -0.5, 0.0, 0.0, 0.0, np.pi / 4)
 
@@ -100,9 +98,9 @@ def timing_table(resolutions, max_points, repeats):
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for res in resolutions:
         m1, m2 = room_maps(res)
-        problem = dense.prepare_alignment(m1, m2, max_points=max_points)
+        problem = prepare_alignment(m1, m2, max_points=max_points)
         T0 = guess((0.4, -0.3, 0.0, 0.0, 0.0, 0.1))
-        r, first, steady = timed(lambda: dense.solve_alignment(problem, T0), repeats)
+        r, first, steady = timed(lambda: solve_alignment(problem, T0), repeats)
         it = int(r.num_iterations)
         print(f"| {res:.2f} | {m1.num_leaves} / {m2.num_leaves} | {problem.points2.shape[1]} | "
               f"{problem.levels} | {first:.1f} | {steady:.2f} | {it} | {1e3 * steady / max(it, 1):.1f} | "
@@ -125,14 +123,14 @@ def run_icp(m1, m2, T_inits, res):
     Returns ``(T (n, 4, 4), status (n,))``."""
     occ = lambda m: m.leaves().centers[m.leaves().log_odds > 0].astype(np.float32)  # noqa: E731
     p1, p2 = occ(m1), occ(m2)
-    cap1, cap2 = icp_mod.pad_points(p1)[0].shape[0], icp_mod.pad_points(p2)[0].shape[0]
+    cap1, cap2 = pad_points(p1)[0].shape[0], pad_points(p2)[0].shape[0]
     Ts, status = [], []
     for T0 in T_inits:
         o = overlap(p1, p2, T0, "bbox")
         q1, q2 = p1[np.asarray(o.mask_1)], p2[np.asarray(o.mask_2)]
-        s, sc = icp_mod.pad_points(q2, cap2)
-        t, tc = icp_mod.pad_points(q1, cap1)
-        r = icp_mod.icp(s, t, T0, resolution=res, source_count=sc, target_count=tc)
+        s, sc = pad_points(q2, cap2)
+        t, tc = pad_points(q1, cap1)
+        r = icp(s, t, T0, resolution=res, source_count=sc, target_count=tc)
         Ts.append(np.asarray(r.T_target_source, np.float64))
         status.append(int(r.status))
     return _orthonormal(np.stack(Ts)), np.asarray(status)
@@ -149,19 +147,16 @@ def accuracy_table(res, max_points):
     t0 = time.perf_counter()
     T_icp, st_icp = run_icp(m1, m2, T_inits, res)
     t_icp = time.perf_counter() - t0
-    problem = dense.prepare_alignment(m1, m2, max_points=max_points)
+    problem = prepare_alignment(m1, m2, max_points=max_points)
     t0 = time.perf_counter()
-    d_res = jax.block_until_ready(dense.solve_alignment(problem, T_inits))
+    d_res = jax.block_until_ready(solve_alignment(problem, T_inits))
     t_dense = time.perf_counter() - t0
     t0 = time.perf_counter()
-    id_res = jax.block_until_ready(dense.solve_alignment(problem, T_icp))
+    id_res = jax.block_until_ready(solve_alignment(problem, T_icp))
     t_both = time.perf_counter() - t0
     T_d, T_id = _orthonormal(d_res.T_1_2), _orthonormal(id_res.T_1_2)
     # the pipeline's refine="icp+dense" (refine.register): dense from ICP's result from the level of
     # ICP's last correspondence distance, then from the guess if that fails, else ICP's result kept
-    from octomerge_jax.config import MergeConfig
-    from octomerge_jax.refine import register
-
     cfg = MergeConfig().replace(registration={"refine": "icp+dense"})
     t0 = time.perf_counter()
     T_pipe, st_pipe = [], []

@@ -23,6 +23,7 @@ import argparse
 import importlib
 import platform
 import time
+import warnings
 
 import _host_memory
 import jax
@@ -33,8 +34,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from octomerge_jax import se3 as rigid
-from octomerge_jax.registration import metrics, overlap
-from octomerge_jax.registration._solver import _jaxopt
+from octomerge_jax.registration import icp, metrics, overlap
 from octomerge_jax.sim import scene_pair
 from octomerge_jax import se3
 xyz_rpy64 = functools.partial(se3.from_xyz_rpy, xp=np)  # float64 ground truth
@@ -58,7 +58,7 @@ def kabsch64(src, dst, w):
 
 def _increment(T, xi):
     """``exp(xi) T`` with ``xi = (rotation vector [rad], translation [m])`` (left perturbation)."""
-    R = icp_mod._so3_exp(xi[:3])
+    R = se3.so3_exp(xi[:3])
     return rigid.from_rotation_translation(R @ T[:3, :3], R @ T[:3, 3] + xi[3:])
 
 
@@ -70,7 +70,7 @@ def gauss_newton(src, dst, w, T, iters):
     def step(T, _):
         p = rigid.transform_points(T, src)
         r = p - dst
-        J_rot = -icp_mod._skew(p)  # d(R p)/d(omega) = -[p]x for a left increment
+        J_rot = -se3.skew(p)  # d(R p)/d(omega) = -[p]x for a left increment
         A = jnp.concatenate([J_rot, jnp.broadcast_to(jnp.eye(3, dtype=src.dtype), J_rot.shape)], -1)
         H = jnp.einsum("n,nji,njk->ik", wf, A, A)
         g = jnp.einsum("n,nji,nj->i", wf, A, r)
@@ -81,7 +81,9 @@ def gauss_newton(src, dst, w, T, iters):
 
 
 def jaxopt_solver(kind, iters):
-    jaxopt = _jaxopt()
+    with warnings.catch_warnings():  # only jaxopt's own "no longer maintained" notice
+        warnings.filterwarnings("ignore", message="JAXopt is no longer maintained", category=DeprecationWarning)
+        import jaxopt
 
     def residual(xi, src, dst, sw, T):
         return (sw[:, None] * (rigid.transform_points(_increment(T, xi), src) - dst)).ravel()
@@ -179,8 +181,8 @@ def bench_outer(res, starts, table):
     tgt, src, T12 = clouds(res)
     cs, ct = src.mean(0), tgt.mean(0)
     s, q = src - cs, tgt - ct
-    r = icp_mod.icp(src, tgt, T12, resolution=res)
-    t_icp = timed(lambda: icp_mod.icp(src, tgt, T12, resolution=res).T_target_source, repeats=3)[1]
+    r = icp(src, tgt, T12, resolution=res)
+    t_icp = timed(lambda: icp(src, tgt, T12, resolution=res).T_target_source, repeats=3)[1]
     print(f"(scale: icp from the truth at {res} m: {int(r.num_iterations)} iterations in {t_icp:.2f} s, "
           f"{1e3 * t_icp / max(int(r.num_iterations), 1):.1f} ms per iteration incl. grid build)")
     for yaw, shift in starts:

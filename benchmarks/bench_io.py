@@ -27,9 +27,11 @@ import numpy as np
 from octomerge_jax import morton
 from octomerge_jax.io import load, num_nodes, save
 from octomerge_jax.map import from_leaves
-from octomerge_jax.io import _preorder
 
 RES = 0.05
+# MASKS[d] keeps the top d octal digits of a 48-bit Morton code (the min corner at depth d)
+MASKS = np.array([((1 << 48) - 1) & ~((1 << (3 * (morton.TREE_DEPTH - d))) - 1)
+                  for d in range(morton.TREE_DEPTH + 1)], dtype=np.uint64)
 
 
 def _prune_max(codes, depths, values):
@@ -38,7 +40,7 @@ def _prune_max(codes, depths, values):
         idx = np.flatnonzero(depths == d + 1)
         if idx.size < 8:
             continue
-        parent = codes[idx] & _preorder.MASKS[d]
+        parent = codes[idx] & MASKS[d]
         starts = np.flatnonzero(np.r_[True, parent[1:] != parent[:-1]])
         run = np.diff(np.r_[starts, idx.size])
         cand = starts[run == 8]

@@ -1,6 +1,6 @@
 """End-to-end merge time per stage for three map sizes, and merge_batch throughput vs a loop.
 
-Maps: the room scene of ``tests/test_pipeline.py`` (robot 1 sees x < 3 m in the world frame,
+Maps: the room scene of ``tests/test_pipeline.py``, copied here (robot 1 sees x < 3 m in the world frame,
 robot 2 sees x >= 0.8 m in a frame yawed by pi/4) at three resolutions, so leaf counts grow
 ~4x per step. Each size is merged from a guess 0.1 rad / 0.1 m off: read both files, occupied
 clouds, overlap, ICP, transform, fuse, write. The first call (compile) is timed apart from the
@@ -32,7 +32,6 @@ import argparse
 import math
 import platform
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -41,18 +40,58 @@ import _host_memory
 import jax
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from octomerge_jax import tree
+from octomerge_jax.pipeline import transform_from_xyz_rpy
+from octomerge_jax.resample import transform_map
 
 STAGES = ("load", "occupied_points", "overlap", "icp", "transform", "fuse", "save")
 
 
-def make_pair(res):
-    import test_pipeline as tp
+# the room scene of tests/test_pipeline.py (T_TRUE, world_scene, robot_map there)
+T_TRUE = transform_from_xyz_rpy(0.35, -0.25, 0.0, 0.0, 0.0, math.pi / 4)  # T_1_2: a pi/4 yaw
 
-    tp.world_scene.cache_clear()
-    m1 = tp.robot_map((-1.0, 3.0), res=res)
-    m2 = tp.robot_map((0.8, 9.0), res=res, T_world_map=tp.T_TRUE)
-    return m1, m2, tp.T_TRUE
+
+def _surface(lo, hi, res):
+    """Voxel centres on the faces of the box [lo, hi] [m]."""
+    axes = [np.arange(a + res / 2, b, res) for a, b in zip(lo, hi)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    lo, hi = np.asarray(lo), np.asarray(hi)
+    on = np.any((g - lo < res) | (hi - g < res), axis=1)
+    return g[on]
+
+
+def world_scene(res):
+    """(occupied centres, free centres) of a small room in the world (= map 1) frame."""
+    occ = [_surface((0, 0, 0), (4.0, 3.0, 2.0), res)]
+    for lo, hi in [((0.6, 0.5, 0.0), (1.2, 1.3, 0.8)), ((2.4, 1.6, 0.0), (3.0, 2.2, 1.2)),
+                   ((1.6, 0.3, 0.0), (1.9, 0.6, 1.6)), ((3.2, 0.4, 0.0), (3.6, 1.0, 0.5)),
+                   ((2.0, 0.0, 0.0), (2.1, 1.0, 2.0)), ((1.2, 2.0, 0.0), (2.2, 2.1, 1.5))]:
+        occ.append(_surface(lo, hi, res))
+    occ = np.unique(np.round(np.concatenate(occ) / res * 2).astype(np.int64), axis=0) * (res / 2)
+    axes = [np.arange(0.2 + res / 2, 3.8, 2 * res), np.arange(0.2 + res / 2, 2.8, 2 * res),
+            np.arange(1.4 + res / 2, 1.9, 2 * res)]
+    free = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    return occ, free
+
+
+def robot_map(occ, free, x_range, res, T_world_map=np.eye(4)):
+    """The part of the room with ``x_range[0] <= x < x_range[1]`` as an OccupancyMap in the
+    robot's map frame (``T_world_map`` maps its frame into the world)."""
+    keep_o = (occ[:, 0] >= x_range[0]) & (occ[:, 0] < x_range[1])
+    keep_f = (free[:, 0] >= x_range[0]) & (free[:, 0] < x_range[1])
+    centers = np.concatenate([occ[keep_o], free[keep_f]])
+    values = np.concatenate([np.full(keep_o.sum(), 2.0, np.float32), np.full(keep_f.sum(), -1.2, np.float32)])
+    m = tree.from_voxels(centers, values, res)
+    if np.allclose(T_world_map, np.eye(4)):
+        return m
+    return transform_map(m, np.linalg.inv(T_world_map), "nearest")
+
+
+def make_pair(res):
+    occ, free = world_scene(res)
+    m1 = robot_map(occ, free, (-1.0, 3.0), res)
+    m2 = robot_map(occ, free, (0.8, 9.0), res, T_world_map=T_TRUE)
+    return m1, m2, T_TRUE
 
 
 def guess(dyaw=0.1, dx=0.1):

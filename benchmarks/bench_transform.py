@@ -34,7 +34,6 @@ import numpy as np
 import _octomap_peer
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
 
 RES = 0.05
 TOP = 50  # ceiling height in voxels (2.5 m)

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from octomerge_jax import tree
-from octomerge_jax.batch import merge_batch, read_manifest, run_manifest
+from octomerge_jax.batch import merge_batch
+from octomerge_jax.cli.manifest import read_manifest, run_manifest
 from octomerge_jax.io import load, save
 from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
 

@@ -105,7 +105,8 @@ def test_child_env_gives_workers_the_reuse(monkeypatch):
     parent did not opt in."""
     import os
 
-    from octomerge_jax import batch, hostmem
+    from octomerge_jax import hostmem
+    from octomerge_jax.cli.dask_runner import map_on_dask
 
     def faults(env):
         base = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
@@ -133,5 +134,5 @@ def test_child_env_gives_workers_the_reuse(monkeypatch):
 
     monkeypatch.setattr(distributed, "LocalCluster", fake_cluster)
     with pytest.raises(Stop):
-        batch._run_dask([], {}, None, 2, {}, None, None, False)
+        list(map_on_dask(len, [], workers=2, key=str))
     assert seen["env"] == hostmem.child_env() and seen["processes"]

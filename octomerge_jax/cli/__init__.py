@@ -11,6 +11,11 @@ import importlib
 import os
 import sys
 
+from pathlib import Path
+
+import jax
+
+from .. import __version__
 from ..hostmem import reuse_host_memory
 from ._common import CliError
 
@@ -24,8 +29,6 @@ def build_parser() -> argparse.ArgumentParser:
         description="Merge OctoMap occupancy octrees (.bt/.ot) built by different robots.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    from .. import __version__
-
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _COMMANDS:
@@ -48,11 +51,6 @@ def enable_compilation_cache() -> str | None:
     ``$XDG_CACHE_HOME/octomerge_jax/xla`` (``~/.cache/...``). A cache directory the user already
     gave JAX (``JAX_COMPILATION_CACHE_DIR``) is left alone. Returns the directory in use or
     ``None``; a directory that cannot be created disables the cache silently."""
-    import os
-    from pathlib import Path
-
-    import jax
-
     if jax.config.jax_compilation_cache_dir:
         return jax.config.jax_compilation_cache_dir
     path = os.environ.get("OCTOMERGE_CACHE_DIR")

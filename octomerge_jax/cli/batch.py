@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from ..config import REFINE_CHOICES
-
 import argparse
 from pathlib import Path
 
+from ..config import REFINE_CHOICES, MergeConfig, load_config
 from ._common import CliError
+from .manifest import run_manifest
 
 EPILOG = """manifest (CSV with a header; inputs relative to the manifest, outputs to --out-dir):
   map1,map2,output,x,y,z,roll,pitch,yaw
@@ -51,9 +51,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..batch import run_manifest
-    from ..config import MergeConfig, load_config
-
     if not args.manifest.is_file():
         raise CliError(f"{args.manifest}: no such file")
     if args.workers is not None and args.workers < 0:

@@ -7,6 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .._fileutil import check_not_input
+from ..insert import insert_point_clouds
+from ..io import save
+from ..io.scans import Scan, read_scans
+from ..map import empty
 from ._common import CliError
 
 EPILOG = """examples:
@@ -39,12 +44,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from .._fileutil import check_not_input
-    from ..insert import insert_point_clouds
-    from ..io import save
-    from ..io.scans import read_scans
-    from ..map import empty
-
     if args.output.suffix.lower() not in (".bt", ".ot"):
         raise CliError(f"{args.output}: output must end in .bt or .ot")
     if not args.res > 0:
@@ -56,8 +55,6 @@ def run(args) -> int:
             raise CliError("--origin applies to a single point cloud; the scan file has poses")
         pose = np.eye(4)
         pose[:3, 3] = args.origin
-        from ..io.scans import Scan
-
         scans = [Scan(scans[0].points - pose[:3, 3], pose, 0)]
     clouds = [s.world_points().astype(np.float32) for s in scans]
     origins = np.array([s.sensor_origin for s in scans]).reshape(-1, 3)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .._fileutil import check_not_input
+from ..io import load, num_nodes, save
 from ._common import CliError
 
 EPILOG = """examples:
@@ -32,9 +34,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from .._fileutil import check_not_input
-    from ..io import load, num_nodes, save
-
     if not args.input.is_file():
         raise CliError(f"{args.input}: no such file")
     if args.output.suffix.lower() not in (".bt", ".ot"):

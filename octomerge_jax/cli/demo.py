@@ -7,15 +7,19 @@ figures, and prints the thesis's errors eps_r / eps_t before and after ICP.
 
 from __future__ import annotations
 
-from ..config import DEMO_SCENES, REFINE_CHOICES
-
 import argparse
 import time
 from pathlib import Path
 
 import numpy as np
 
+from .. import se3
+from ..config import DEMO_SCENES, REFINE_CHOICES, MergeConfig, load_config
+from ..io import save
+from ..pipeline import merge, transform_from_xyz_rpy
 from ._common import CliError
+from .merge import write_figures
+from .plots import plot_merge_comparison
 
 EPILOG = """examples:
   octomerge demo                                  # writes ./octomerge-demo/
@@ -54,8 +58,6 @@ def register(subparsers) -> None:
 
 
 def _config(args):
-    from ..config import MergeConfig, load_config
-
     cfg = load_config(args.config) if args.config else MergeConfig()
     demo = {}
     for key in ("scene", "resolution", "spacing", "seed"):
@@ -72,22 +74,14 @@ def _config(args):
 
 def perturbed_guess(T_true, error_xyz, error_rpy_rad) -> np.ndarray:
     """The erroneous guess: ``T_true``'s xyz / rpy plus the errors (host, float64)."""
-    from ..pipeline import transform_from_xyz_rpy
-
-    T = np.asarray(T_true, np.float64)
-    R = T[:3, :3]
-    roll = np.arctan2(R[2, 1], R[2, 2])
-    pitch = np.arctan2(-R[2, 0], np.hypot(R[2, 1], R[2, 2]))
-    yaw = np.arctan2(R[1, 0], R[0, 0])
-    x, y, z = T[:3, 3] + np.asarray(error_xyz, np.float64)
+    x, y, z, roll, pitch, yaw = se3.to_xyz_rpy(np.asarray(T_true, np.float64), xp=np)
+    x, y, z = np.array([x, y, z]) + np.asarray(error_xyz, np.float64)
     return transform_from_xyz_rpy(x, y, z, roll + error_rpy_rad[0], pitch + error_rpy_rad[1],
                                   yaw + error_rpy_rad[2])
 
 
 def run(args) -> int:
-    from ..io import save
-    from ..pipeline import merge
-    from ..sim import make_two_robot_maps
+    from ..sim import make_two_robot_maps  # trimesh and scipy: loaded by this command only
 
     try:
         cfg = _config(args)
@@ -113,9 +107,6 @@ def run(args) -> int:
     print(report.summary())
     written = ["map1.bt", "map2.bt", "merged.bt", "report.json"]
     if not args.no_figures:
-        from ..plots import plot_merge_comparison
-        from .merge import write_figures
-
         write_figures(report, merged, out / "overlap_before_after.png", out / "merged_map.png",
                       out / "icp_convergence.png" if report.icp is not None else None, cfg, T_true)
         written += ["overlap_before_after.png", "merged_map.png"]
@@ -135,10 +126,7 @@ def run(args) -> int:
     print(f"epsilon after  ICP: eps_r = {report.epsilon_r:.4f}, eps_t = {report.epsilon_t:.4f} m"
           "   (thesis: coherent below 0.25 / 0.9)")
     print(f"wrote {out}/: {', '.join(written)}  ({time.perf_counter() - t0:.1f} s)")
-    x, y, z = T_init[:3, 3]
-    R = T_init[:3, :3]
-    rpy = (np.arctan2(R[2, 1], R[2, 2]), np.arctan2(-R[2, 0], np.hypot(R[2, 1], R[2, 2])),
-           np.arctan2(R[1, 0], R[0, 0]))
+    x, y, z, *rpy = se3.to_xyz_rpy(T_init, xp=np)
     print("same merge from the files:\n  octomerge merge "
           f"{out / 'map1.bt'} {out / 'map2.bt'} {out / 'merged_again.bt'} "
           f"--xyz {x:.4f} {y:.4f} {z:.4f} --rpy {rpy[0]:.4f} {rpy[1]:.4f} {rpy[2]:.4f}")

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
+from .._fileutil import atomic_write_bytes
+from ..config import MergeConfig, config_to_dict, dumps_toml, load_config
 from ._common import CliError
 
 EPILOG = """examples:
@@ -28,11 +31,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import json
-
-    from ..config import MergeConfig, config_to_dict, dumps_toml, load_config
-    from .._fileutil import atomic_write_bytes
-
     try:
         cfg = load_config(args.config) if args.config else MergeConfig()
     except (ValueError, FileNotFoundError) as err:

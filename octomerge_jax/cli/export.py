@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .._fileutil import check_not_input
+from ..io import load
+from ..io.export import export_map
 from ._common import CliError
 
 EPILOG = """examples:
@@ -33,10 +36,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from .._fileutil import check_not_input
-    from ..io import load
-    from ..io.export import export_map
-
     if not args.map.is_file():
         raise CliError(f"{args.map}: no such file")
     check_not_input(args.output, [args.map], args.force)

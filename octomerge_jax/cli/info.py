@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io import load, num_nodes, read_header
 from ._common import CliError
 
 EPILOG = """examples:
@@ -32,8 +33,6 @@ def register(subparsers) -> None:
 
 def summarize(path: Path, lenient: bool = False) -> dict:
     """The facts ``info`` prints, as a JSON-able dict."""
-    from ..io import load, num_nodes, read_header
-
     if not path.is_file():
         raise CliError(f"{path}: no such file")
     header = read_header(path)

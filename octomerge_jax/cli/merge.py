@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
-from ..config import COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, REFINE_CHOICES
-
 import argparse
 import math
 import sys
 import time
 from pathlib import Path
 
+from .._fileutil import check_not_input
+from ..config import COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, REFINE_CHOICES, MergeConfig, load_config
+from ..io import MapFormatError, load, save
+from ..pipeline import MergeError, icp_trace, merge, transform_from_xyz_rpy
 from ._common import CliError
+from .plots import plot_icp_convergence, plot_map, plot_overlap
 
 # exit codes (also in the epilog)
 EXIT_INPUT = 1
@@ -103,8 +106,6 @@ def guess_from_args(args, name: str = "initial guess"):
 
 
 def config_from_args(args):
-    from ..config import MergeConfig, load_config
-
     cfg = load_config(args.config) if getattr(args, "config", None) else MergeConfig()
     reg, tr, fu = {}, {}, {}
     for key, section in (("refine", reg), ("overlap", reg), ("interpolation", tr), ("rule", fu),
@@ -120,8 +121,6 @@ def config_from_args(args):
 
 
 def _check_output(out: Path, inputs, force: bool, what: str = "OUT"):
-    from .._fileutil import check_not_input
-
     if out.suffix.lower() not in (".bt", ".ot"):
         raise CliError(f"{out}: {what} must end in .bt or .ot")
     check_not_input(out, inputs, force=False)  # never overwrite an input, even with --force
@@ -132,9 +131,6 @@ def _check_output(out: Path, inputs, force: bool, what: str = "OUT"):
 
 
 def run(args) -> int:
-    from ..io import MapFormatError, load, save
-    from ..pipeline import MergeError, merge, transform_from_xyz_rpy
-
     for p in (args.in1, args.in2):
         if not p.is_file():
             raise CliError(f"{p}: no such file")
@@ -180,8 +176,6 @@ def run(args) -> int:
 
 
 def _check_output_side(path: Path, inputs):
-    from .._fileutil import check_not_input
-
     check_not_input(path, inputs, force=False)
     if str(path.parent) and not path.parent.exists():
         raise CliError(f"{path}: folder {path.parent} does not exist")
@@ -190,25 +184,18 @@ def _check_output_side(path: Path, inputs):
 def write_figures(report, merged, figure, map_figure, icp_figure, cfg, truth=None):
     """Figures for a finished merge (each optional)."""
     if figure is not None:
-        from ..plots import plot_overlap
-
         eps = None
         if report.epsilon_r is not None:
             eps = ((report.epsilon_r_init, report.epsilon_t_init), (report.epsilon_r, report.epsilon_t))
         plot_overlap(report.points_1, report.points_2, report.T_1_2_init, report.T_1_2, figure,
                      epsilons=eps)
     if map_figure is not None:
-        from ..plots import plot_map
-
         plot_map(merged, map_figure, title="merged map (map 1 frame)")
     if icp_figure is not None:
         if report.icp is None:
             print("octomerge merge: warning: --icp-figure needs ICP (refine is none); skipped",
                   file=sys.stderr)
         else:
-            from ..pipeline import icp_trace
-            from ..plots import plot_icp_convergence
-
             start = report.T_1_2_init
             if report.refine == "multi":  # trace the winning hypothesis
                 start = report.icp_result.hypotheses[int(report.icp_result.best_index)]

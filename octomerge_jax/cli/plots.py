@@ -15,6 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .._fileutil import atomic_output
+from ..map import probability
+
 __all__ = ["plot_overlap", "plot_map", "plot_merge_comparison", "plot_icp_convergence", "save_figure"]
 
 MAP1_COLOR = "#d62728"  # thesis: first map red
@@ -33,8 +36,6 @@ def _figure(figsize):
 
 def save_figure(fig, path, dpi: int = 110) -> None:
     """Save ``fig`` to ``path`` (format by extension: .png, .pdf, .svg), atomically."""
-    from ._fileutil import atomic_output
-
     path = Path(path)
     with atomic_output(path, suffix=path.suffix or ".png") as tmp:
         fig.savefig(tmp, dpi=dpi, format=(path.suffix[1:] or "png"))
@@ -108,8 +109,6 @@ def plot_overlap(points_1, points_2, T_1_2_init, T_1_2, path=None, *, view: str 
 
 
 def _occupied(m, max_points: int):
-    from .map import probability
-
     lv = m.leaves()
     thr = float(np.asarray(m.params.occupancy_threshold_log_odds))
     occ = lv.log_odds >= thr
