@@ -16,7 +16,6 @@ Prints markdown tables."""
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import platform
 import statistics
@@ -30,10 +29,10 @@ import numpy as np
 from octomerge_jax import tree
 from octomerge_jax.registration import dense, metrics, overlap
 from octomerge_jax.sim import surface_samples
+from octomerge_jax import registration as reg
 from octomerge_jax import se3
 xyz_rpy64 = functools.partial(se3.from_xyz_rpy, xp=np)  # float64 ground truth
 
-icp_mod = importlib.import_module("octomerge_jax.registration.icp")
 
 T_TRUE = xyz_rpy64(1.0, -0.5, 0.0, 0.0, 0.0, np.pi / 4)
 
@@ -125,14 +124,14 @@ def run_icp(m1, m2, T_inits, res):
     Returns ``(T (n, 4, 4), status (n,))``."""
     occ = lambda m: m.leaves().centers[m.leaves().log_odds > 0].astype(np.float32)  # noqa: E731
     p1, p2 = occ(m1), occ(m2)
-    cap1, cap2 = icp_mod.pad_points(p1)[0].shape[0], icp_mod.pad_points(p2)[0].shape[0]
+    cap1, cap2 = reg.pad_points(p1)[0].shape[0], reg.pad_points(p2)[0].shape[0]
     Ts, status = [], []
     for T0 in T_inits:
         o = overlap(p1, p2, T0, "bbox")
         q1, q2 = p1[np.asarray(o.mask_1)], p2[np.asarray(o.mask_2)]
-        s, sc = icp_mod.pad_points(q2, cap2)
-        t, tc = icp_mod.pad_points(q1, cap1)
-        r = icp_mod.icp(s, t, T0, resolution=res, source_count=sc, target_count=tc)
+        s, sc = reg.pad_points(q2, cap2)
+        t, tc = reg.pad_points(q1, cap1)
+        r = reg.icp(s, t, T0, resolution=res, source_count=sc, target_count=tc)
         Ts.append(np.asarray(r.T_target_source, np.float64))
         status.append(int(r.status))
     return _orthonormal(np.stack(Ts)), np.asarray(status)

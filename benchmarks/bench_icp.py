@@ -29,10 +29,9 @@ import numpy as np
 
 from octomerge_jax.registration import metrics, overlap
 from octomerge_jax.sim import scene_pair
+from octomerge_jax import registration as reg
 from octomerge_jax import se3
 xyz_rpy64 = functools.partial(se3.from_xyz_rpy, xp=np)  # float64 ground truth
-
-icp_mod = importlib.import_module("octomerge_jax.registration.icp")
 
 
 def _try(name):
@@ -123,7 +122,7 @@ def bench_sizes(resolutions, num_starts):
             sizes.append((len(p2), len(p1)))
             for name, run in tools:
                 if run is None:
-                    f = lambda: icp_mod.icp(p2, p1, T0, resolution=res, coarse_matching=COARSE)
+                    f = lambda: reg.icp(p2, p1, T0, resolution=res, coarse_matching=COARSE)
                     r, t_first, t = timed(f, 1)
                     first = t_first if first is None else first
                     status.append((int(r.status), int(r.num_iterations)))
@@ -168,7 +167,7 @@ def bench_multi(res, ks, repeats):
               f"{'best rot/m':>17} {'right':>5} | {cols}")
         for i, k in enumerate(ks):
             for sequential in ((True, False) if i == 0 and yaw == 1.7 else (True,)):
-                f = lambda: icp_mod.icp_multi(p2, p1, T0, resolution=res, yaw_step_rad=2 * np.pi / k,
+                f = lambda: reg.icp_multi(p2, p1, T0, resolution=res, yaw_step_rad=2 * np.pi / k,
                                               roll_pitch_offset_rad=0.0, sequential=sequential)
                 m, first, _ = timed(f, 0)
                 ours, peer_t = [], {name: [] for name, _ in peers}
@@ -281,7 +280,7 @@ def bench_grid(res, z_max):
     print(f"\n## Table 7.1-style grid (res {res} m, world z <= {z_max} m; our exact T_1_2 is yaw +pi/4 "
           "about a 1.0/-0.5 m offset; each guess = exact + the row's error)")
     p1, p2, T12 = scene_pair(res, z_max=z_max)
-    cap1, cap2 = icp_mod.pad_points(p1)[0].shape[0], icp_mod.pad_points(p2)[0].shape[0]
+    cap1, cap2 = reg.pad_points(p1)[0].shape[0], reg.pad_points(p2)[0].shape[0]
     print(f"{'#':>2} {'guess err (x,y,z | r,p,y)':>30} | {'eps_r/eps_t pre':>15} | {'ours bbox':>13} | "
           f"{'ours voxel':>13} | {'o3d bbox':>13} | {'o3d voxel':>13} | {'sg bbox':>13} | {'sg voxel':>13} | "
           "n_bbox n_voxel")
@@ -301,9 +300,9 @@ def bench_grid(res, z_max):
             q1, q2 = p1[np.asarray(o.mask_1)], p2[np.asarray(o.mask_2)]
             counts.append(len(q2))
             # fixed capacities: one compilation for the whole grid
-            s, sc = icp_mod.pad_points(q2, cap2)
-            tg, tc = icp_mod.pad_points(q1, cap1)
-            r = icp_mod.icp(s, tg, T0, resolution=res, source_count=sc, target_count=tc,
+            s, sc = reg.pad_points(q2, cap2)
+            tg, tc = reg.pad_points(q1, cap1)
+            r = reg.icp(s, tg, T0, resolution=res, source_count=sc, target_count=tc,
                             coarse_matching=COARSE)
             cells.append(("ours " + method, np.asarray(r.T_target_source, np.float64)))
             if o3d is not None and len(q1) > 10 and len(q2) > 10:
@@ -337,7 +336,7 @@ def main():
     ap.add_argument("--global-res", type=float, nargs="*", default=[],
                     help="global registration rows at these resolutions (correlation_search vs Open3D FPFH + RANSAC)")
     ap.add_argument("--global-k", type=int, default=8, help="global rows: correlation poses refined by ICP")
-    ap.add_argument("--coarse-matching", default="centroid", choices=icp_mod.COARSE_MATCHING,
+    ap.add_argument("--coarse-matching", default="centroid", choices=reg.COARSE_MATCHING,
                     help="ours: matching on the coarse stages (see registration.icp)")
     _host_memory.add_flag(ap)
     args = ap.parse_args()

@@ -20,7 +20,6 @@ Two measurements on the benchmark room pair's occupied clouds (``_testing.scene_
 from __future__ import annotations
 
 import argparse
-import importlib
 import platform
 import time
 
@@ -36,10 +35,10 @@ from octomerge_jax import se3 as rigid
 from octomerge_jax.registration import metrics, overlap
 from octomerge_jax.registration._solver import _jaxopt
 from octomerge_jax.sim import scene_pair
+from octomerge_jax import registration as reg
+from octomerge_jax.registration._icp._kabsch import kabsch
 from octomerge_jax import se3
 xyz_rpy64 = functools.partial(se3.from_xyz_rpy, xp=np)  # float64 ground truth
-
-icp_mod = importlib.import_module("octomerge_jax.registration.icp")
 
 
 def kabsch64(src, dst, w):
@@ -58,7 +57,7 @@ def kabsch64(src, dst, w):
 
 def _increment(T, xi):
     """``exp(xi) T`` with ``xi = (rotation vector [rad], translation [m])`` (left perturbation)."""
-    R = icp_mod._so3_exp(xi[:3])
+    R = rigid.so3_exp(xi[:3])
     return rigid.from_rotation_translation(R @ T[:3, :3], R @ T[:3, 3] + xi[3:])
 
 
@@ -70,7 +69,7 @@ def gauss_newton(src, dst, w, T, iters):
     def step(T, _):
         p = rigid.transform_points(T, src)
         r = p - dst
-        J_rot = -icp_mod._skew(p)  # d(R p)/d(omega) = -[p]x for a left increment
+        J_rot = -rigid.skew(p)  # d(R p)/d(omega) = -[p]x for a left increment
         A = jnp.concatenate([J_rot, jnp.broadcast_to(jnp.eye(3, dtype=src.dtype), J_rot.shape)], -1)
         H = jnp.einsum("n,nji,njk->ik", wf, A, A)
         g = jnp.einsum("n,nji,nj->i", wf, A, r)
@@ -97,7 +96,7 @@ def jaxopt_solver(kind, iters):
 
 
 def solvers():
-    out = {"kabsch (ours)": lambda s, d, w, T: icp_mod._kabsch(s, d, w)}
+    out = {"kabsch (ours)": lambda s, d, w, T: kabsch(s, d, w)}
     for k in (1, 2, 3):
         out[f"GN x{k}"] = lambda s, d, w, T, k=k: gauss_newton(s, d, w, T, k)
     for k in (1, 3):
@@ -179,8 +178,8 @@ def bench_outer(res, starts, table):
     tgt, src, T12 = clouds(res)
     cs, ct = src.mean(0), tgt.mean(0)
     s, q = src - cs, tgt - ct
-    r = icp_mod.icp(src, tgt, T12, resolution=res)
-    t_icp = timed(lambda: icp_mod.icp(src, tgt, T12, resolution=res).T_target_source, repeats=3)[1]
+    r = reg.icp(src, tgt, T12, resolution=res)
+    t_icp = timed(lambda: reg.icp(src, tgt, T12, resolution=res).T_target_source, repeats=3)[1]
     print(f"(scale: icp from the truth at {res} m: {int(r.num_iterations)} iterations in {t_icp:.2f} s, "
           f"{1e3 * t_icp / max(int(r.num_iterations), 1):.1f} ms per iteration incl. grid build)")
     for yaw, shift in starts:

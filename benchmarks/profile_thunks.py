@@ -28,26 +28,22 @@ import numpy as np
 
 
 def _icp_call(args):
-    import importlib
-
-    from octomerge_jax.registration import overlap
+    from octomerge_jax.registration import icp, icp_multi, overlap
     from octomerge_jax.sim import scene_pair
     from octomerge_jax import se3
     xyz_rpy64 = functools.partial(se3.from_xyz_rpy, xp=np)  # float64 ground truth
-
-    icp = importlib.import_module("octomerge_jax.registration.icp")  # the package re-exports the function
 
     if args.what == "icp_multi":
         p1, p2, T12 = scene_pair(args.res, crop_1=(-1.0, 11.5), crop_2=(0.5, 13.0))
         T0 = xyz_rpy64(0.0, 0.0, 0.0, 0.0, 0.0, 1.7) @ T12
         k = args.hypotheses
-        return lambda: icp.icp_multi(p2, p1, T0, resolution=args.res, yaw_step_rad=2 * np.pi / k,
-                                     roll_pitch_offset_rad=0.0).best.T_target_source
+        return lambda: icp_multi(p2, p1, T0, resolution=args.res, yaw_step_rad=2 * np.pi / k,
+                                 roll_pitch_offset_rad=0.0).best.T_target_source
     P1, P2, T12 = scene_pair(args.res)
     T0 = xyz_rpy64(0.2, 0.1, 0.0, 0.0, 0.0, 0.05) @ T12  # bench_icp's start 0
     o = overlap(P1, P2, T0, "bbox")
     p1, p2 = P1[np.asarray(o.mask_1)], P2[np.asarray(o.mask_2)]
-    return lambda: icp.icp(p2, p1, T0, resolution=args.res).T_target_source
+    return lambda: icp(p2, p1, T0, resolution=args.res).T_target_source
 
 
 def _fuse_call(args):
