@@ -210,6 +210,9 @@ def stage_queries(loop: Loop, stage, last_stage: int) -> Queries:
 
 
 def _loops(clouds: QueryClouds, *, run_coarse: bool, run_last: bool) -> list[Loop]:
+    """The loops of a run: one over every stage when there is a single stage or the coarse
+    clouds are as long as the source, else the coarse stages' (``run_coarse``) then the last
+    stage's (``run_last``)."""
     full = Queries(*(x[None] for x in clouds.full))
     if clouds.coarse is None:
         return [Loop(full, "all")]

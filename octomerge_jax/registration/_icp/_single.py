@@ -103,8 +103,8 @@ def icp(source, target, T_target_source_init, *, resolution: float,
     ``coarse_matching``: ``"centroid"`` (default) matches coarse stages to the target's
     voxel-grid centroids at ``d / 2`` (a smoothed target, like the thesis code's VoxelGrid
     downsampling: a wider basin of convergence); ``"nearest"`` matches the exact nearest target
-    point whenever one lies within the floor distance (Open3D's fixed point, a narrower
-    basin); ``"symmetric"`` is ``"centroid"`` with the source's voxel-grid centroids at
+    point whenever one lies within the floor distance (the unsmoothed fixed point, a
+    narrower basin); ``"symmetric"`` is ``"centroid"`` with the source's voxel-grid centroids at
     ``d / 2`` as the queries. Coarse stages of ``"centroid"`` and ``"nearest"`` query every
     k-th source point (k <= 4, at least 2048 queries kept). The last stage always matches the
     exact nearest target point to every source point.
