@@ -6,14 +6,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import importlib
-
+from octomerge_jax import registration as reg
 from octomerge_jax import se3 as rigid
-from octomerge_jax.registration import metrics
+from octomerge_jax.registration import Status, metrics, neighbors
+from octomerge_jax.registration._icp import _coarse, _single
 from octomerge_jax.sim import scene_pair
 from helpers import xyz_rpy64
-
-icp_mod = importlib.import_module("octomerge_jax.registration.icp")  # `registration.icp` is the function
 
 RES = 0.4
 
@@ -36,8 +34,8 @@ def test_recovers_a_known_transform_exactly_without_noise(scene):
     p1, _, _ = scene
     T_true = xyz_rpy64(0.4, -0.3, 0.1, 0.03, -0.02, 0.15)  # T_target_source
     src = _moved(p1[::2], np.linalg.inv(T_true))
-    r = icp_mod.icp(src, p1, np.eye(4), resolution=RES)
-    assert int(r.status) == icp_mod.STATUS_CONVERGED and bool(r.converged)
+    r = reg.icp(src, p1, np.eye(4), resolution=RES)
+    assert int(r.status) == Status.CONVERGED and bool(r.converged)
     rot, tr = _errors(r.T_target_source, T_true)
     assert rot < 1e-4 and tr < 1e-4
     assert int(r.num_inliers) == len(src) and float(r.rmse) < 1e-4
@@ -51,7 +49,7 @@ def test_noise_level_accuracy_and_model_swap(scene):
     sigma = 0.02
     src = _moved(p1, np.linalg.inv(T_true)) + rng.normal(0, sigma, p1.shape)
     tgt = p1[rng.random(len(p1)) < 0.6]  # smaller target: ICP swaps and inverts
-    r = icp_mod.icp(src, tgt, np.eye(4), resolution=RES)
+    r = reg.icp(src, tgt, np.eye(4), resolution=RES)
     assert bool(r.swapped)
     rot, tr = _errors(r.T_target_source, T_true)
     assert rot < 2e-3 and tr < sigma  # within the noise level
@@ -61,17 +59,17 @@ def test_noise_level_accuracy_and_model_swap(scene):
 def test_status_instead_of_exceptions_and_host_errors(scene):
     p1, _, _ = scene
     far = p1 + 100.0
-    r = icp_mod.icp(far, p1, np.eye(4), resolution=RES)
-    assert int(r.status) == icp_mod.STATUS_TOO_FEW_INLIERS and not bool(r.converged)
+    r = reg.icp(far, p1, np.eye(4), resolution=RES)
+    assert int(r.status) == Status.TOO_FEW_INLIERS and not bool(r.converged)
     np.testing.assert_allclose(np.asarray(r.T_target_source), np.eye(4), atol=1e-6)
-    r = icp_mod.icp(p1 + 0.05, p1, np.eye(4), resolution=RES, max_iterations=1)
-    assert int(r.status) == icp_mod.STATUS_MAX_ITERATIONS and int(r.num_iterations) == 1
+    r = reg.icp(p1 + 0.05, p1, np.eye(4), resolution=RES, max_iterations=1)
+    assert int(r.status) == Status.MAX_ITERATIONS and int(r.num_iterations) == 1
     with pytest.raises(ValueError, match="T_target_source_init"):
-        icp_mod.icp(p1, p1, np.eye(3), resolution=RES)
+        reg.icp(p1, p1, np.eye(3), resolution=RES)
     with pytest.raises(ValueError, match="source: contains non-finite"):
-        icp_mod.icp(np.full((5, 3), np.nan), p1, np.eye(4), resolution=RES)
+        reg.icp(np.full((5, 3), np.nan), p1, np.eye(4), resolution=RES)
     with pytest.raises(ValueError, match="min_correspondence_distance"):
-        icp_mod.icp(p1, p1, np.eye(4), resolution=RES, min_correspondence_distance=100.0)
+        reg.icp(p1, p1, np.eye(4), resolution=RES, min_correspondence_distance=100.0)
 
 
 def test_vmap_over_pairs_matches_single_runs_and_does_not_recompile(scene):
@@ -82,31 +80,31 @@ def test_vmap_over_pairs_matches_single_runs_and_does_not_recompile(scene):
     S, SC, Tg, TC = [], [], [], []
     for T in truths:
         sub = p1[rng.random(len(p1)) < 0.5]
-        s, sc = icp_mod.pad_points(_moved(sub, np.linalg.inv(T)), cap_s)
-        t, tc = icp_mod.pad_points(p1, cap_t)
+        s, sc = reg.pad_points(_moved(sub, np.linalg.inv(T)), cap_s)
+        t, tc = reg.pad_points(p1, cap_t)
         S.append(s), SC.append(sc), Tg.append(t), TC.append(tc)
-    dists = icp_mod.stage_distances(RES)
-    run = lambda s, sc, t, tc: icp_mod.icp_padded(s, sc, t, tc, jnp.eye(4), dists, RES / 60)
+    dists = reg.stage_distances(RES)
+    run = lambda s, sc, t, tc: reg.icp_padded(s, sc, t, tc, jnp.eye(4), dists, RES / 60)
     batched = jax.jit(jax.vmap(run))(jnp.stack(S), jnp.stack(SC), jnp.stack(Tg), jnp.stack(TC))
     compiled = None
     for i, T in enumerate(truths):
         single = run(S[i], SC[i], Tg[i], TC[i])
         if compiled is None:  # after the first single call (whatever earlier tests compiled)
-            compiled = icp_mod._icp_padded_jit._cache_size()
+            compiled = _single.solve_padded._cache_size()
         np.testing.assert_allclose(np.asarray(batched.T_target_source[i]), np.asarray(single.T_target_source),
                                    atol=1e-5)
         rot, tr = _errors(single.T_target_source, T)
         assert rot < 1e-4 and tr < 1e-4
     # the second single call (other data, same bucket) reused the first compilation
-    assert icp_mod._icp_padded_jit._cache_size() == compiled
+    assert _single.solve_padded._cache_size() == compiled
     # the stacked entry point merge_batch uses: pair after pair (CPU default) or one vmap batch
     d, eps = jnp.asarray(dists), jnp.float32(RES / 60)
     for sequential in (True, False):
-        st = icp_mod.icp_padded_stack(jnp.stack(S), jnp.stack(SC), jnp.stack(Tg), jnp.stack(TC),
-                                      jnp.stack([jnp.eye(4)] * 2), d, eps, eps * 0.01, jnp.int32(6),
-                                      max_iterations=100, cell_capacity=8,
-                                      table_sizes=icp_mod.neighbors.level_table_sizes(cap_t, dists),
-                                      coarse_matching="centroid", sequential=sequential)
+        st = reg.icp_padded_stack(jnp.stack(S), jnp.stack(SC), jnp.stack(Tg), jnp.stack(TC),
+                                  jnp.stack([jnp.eye(4)] * 2), d, eps, eps * 0.01, jnp.int32(6),
+                                  max_iterations=100, cell_capacity=8,
+                                  table_sizes=neighbors.level_table_sizes(cap_t, dists),
+                                  coarse_matching="centroid", sequential=sequential)
         assert st.T_target_source.shape == (2, 4, 4) and st.num_iterations.shape == (2,)
         np.testing.assert_allclose(np.asarray(st.T_target_source), np.asarray(batched.T_target_source),
                                    atol=1e-5)
@@ -124,7 +122,7 @@ def test_gradients_match_central_finite_differences(scene):
     kw = dict(resolution=RES, source_count=600, target_count=600)
 
     def f(s, t, T0):
-        return jnp.sum(W * icp_mod.icp(s, t, T0, **kw).T_target_source)
+        return jnp.sum(W * reg.icp(s, t, T0, **kw).T_target_source)
 
     T0 = jnp.asarray(xyz_rpy64(0.0, 0.0, 0.0, 0.0, 0.0, 0.02), jnp.float32)
     gs, gt, gT = jax.grad(f, argnums=(0, 1, 2))(src, tgt, T0)
@@ -154,7 +152,7 @@ def test_icp_multi_candidates_are_batched_also_when_swapped():
     big = rng.uniform(-2.0, 2.0, (500, 3)).astype(np.float32)
     small = big[:300] + np.float32(0.03)
     for src, tgt, swapped in ((small, big, False), (big, small, True)):
-        r = icp_mod.icp_multi(src, tgt, np.eye(4), resolution=0.1)
+        r = reg.icp_multi(src, tgt, np.eye(4), resolution=0.1)
         k = r.hypotheses.shape[0]
         for name, leaf in vars(r.candidates).items():
             assert np.shape(leaf)[:1] == (k,), name
@@ -173,8 +171,8 @@ def test_icp_multi_sequential_equals_batched_on_converged_candidates():
     # five hypotheses and clouds in the buckets of the basin test below: its sequential
     # kernel is this one's (one compilation less)
     hyps = np.stack([xyz_rpy64(0, 0, 0, 0, 0, y) @ T for y in (0.0, 0.05, -0.08, 0.3, 0.6)])
-    a = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True)
-    b = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=False)
+    a = reg.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True)
+    b = reg.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=False)
     conv = np.asarray(a.candidates.converged) & np.asarray(b.candidates.converged)
     assert conv[:3].all()
     np.testing.assert_allclose(np.asarray(a.candidates.T_target_source)[conv],
@@ -184,9 +182,9 @@ def test_icp_multi_sequential_equals_batched_on_converged_candidates():
 
 
 def test_icp_multi_runs_each_basin_once_and_resumes_exactly():
-    """After each coarse stage, hypotheses that left it within ``basin_tolerance`` of each other
+    """After each coarse stage, hypotheses that left it within ``basin_tolerance_m`` of each other
     go on as one run: a hypothesis 1 mm / 0.1 mrad from another shares its leader's result and
-    ``basin`` index; a distinct start keeps its own. With ``basin_tolerance=0``
+    ``basin`` index; a distinct start keeps its own. With ``basin_tolerance_m=0``
     every candidate runs alone, and the staged runs (stopped at each stage's end, resumed)
     give exactly the single ``icp`` run from the same start. One after another, a run stops
     as soon as it comes within the stage's tolerance of where an earlier one left the stage:
@@ -197,27 +195,27 @@ def test_icp_multi_runs_each_basin_once_and_resumes_exactly():
     src = _moved(tgt[:500], np.linalg.inv(T))
     near = xyz_rpy64(0.001, 0.0, 0.0, 0.0, 0.0, 1e-4)
     hyps = np.stack([np.eye(4), xyz_rpy64(0, 0, 0, 0, 0, 0.3), T, near, xyz_rpy64(0, 0, 0, 0, 0, 2.5)])
-    merged = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True)
+    merged = reg.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True)
     basin = np.asarray(merged.basin).tolist()
     assert basin[2] == basin[3] == 0 and basin[4] == 4, basin
     for i, j in enumerate(basin):
         for name, leaf in vars(merged.candidates).items():
             np.testing.assert_array_equal(np.asarray(leaf)[i], np.asarray(leaf)[j], err_msg=name)
-    alone = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True, basin_tolerance=0.0)
+    alone = reg.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, sequential=True, basin_tolerance_m=0.0)
     assert np.asarray(alone.basin).tolist() == list(range(5))
     ran, ran_alone = np.asarray(merged.num_iterations_run), np.asarray(alone.num_iterations_run)
     np.testing.assert_array_equal(ran_alone, np.asarray(alone.candidates.num_iterations))
     assert ran[2] == 0 < ran_alone[2] and ran[0] == ran_alone[0] and ran.sum() < ran_alone.sum(), (ran, ran_alone)
     for i in (0, 1, 3):  # not the 2.5 rad start: its run (1.8 rad off) is chaotic in float rounding
-        single = icp_mod.icp(src, tgt, hyps[i], resolution=0.1)
+        single = reg.icp(src, tgt, hyps[i], resolution=0.1)
         cand = jax.tree_util.tree_map(lambda a, i=i: a[i], alone.candidates)
         assert int(cand.num_iterations) == int(single.num_iterations)
         np.testing.assert_allclose(np.asarray(cand.T_target_source), np.asarray(single.T_target_source), atol=1e-6)
     assert _errors(merged.candidates.T_target_source[0], T)[0] < 1e-3
     with pytest.raises(ValueError, match="basin_tolerance"):
-        icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance=-1.0)
+        reg.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance_m=-1.0)
     with pytest.raises(ValueError, match="basin_tolerance"):
-        icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance="half a voxel")
+        reg.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance_m="half a voxel")
 
 
 def test_coarse_stages_on_a_smaller_cloud_resume_exactly():
@@ -229,11 +227,11 @@ def test_coarse_stages_on_a_smaller_cloud_resume_exactly():
     tgt = rng.uniform(-3.0, 3.0, (7000, 3)).astype(np.float32)
     T = xyz_rpy64(0.15, -0.1, 0.03, 0.01, 0.0, 0.1)
     src = _moved(tgt[:5000], np.linalg.inv(T))
-    assert icp_mod.pad_points(src)[0].shape[0] == 8192 and icp_mod._coarse_rows(8192, False) == 4096
+    assert reg.pad_points(src)[0].shape[0] == 8192 and _coarse.coarse_rows(8192, False) == 4096
     hyps = np.stack([np.eye(4), xyz_rpy64(0.05, 0, 0, 0, 0, -0.05)])
-    multi = icp_mod.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance=0.0)
+    multi = reg.icp_multi(src, tgt, np.eye(4), hyps, resolution=0.1, basin_tolerance_m=0.0)
     for i in range(2):
-        single = icp_mod.icp(src, tgt, hyps[i], resolution=0.1)
+        single = reg.icp(src, tgt, hyps[i], resolution=0.1)
         cand = jax.tree_util.tree_map(lambda a, i=i: a[i], multi.candidates)
         assert int(cand.num_iterations) == int(single.num_iterations)
         np.testing.assert_allclose(np.asarray(cand.T_target_source), np.asarray(single.T_target_source), atol=1e-6)
@@ -252,7 +250,7 @@ def test_icp_multi_reaches_the_truth_from_large_yaw_errors(yaw_error):
     (``tests/test_dense.py``)."""
     p1, p2, T12 = scene_pair(0.2, crop_1=(-1.0, 11.5), crop_2=(0.5, 13.0))  # mostly common maps
     T_init = xyz_rpy64(0.0, 0.0, 0.0, 0.0, 0.0, yaw_error) @ T12
-    multi = icp_mod.icp_multi(p2, p1, T_init, resolution=0.2)
+    multi = reg.icp_multi(p2, p1, T_init, resolution=0.2)
     assert multi.hypotheses.shape == (16, 4, 4) and multi.scores.shape == (16,)
     errors = [_errors(multi.candidates.T_target_source[i], T12) for i in range(16)]
     right = [i for i, (rot, _) in enumerate(errors) if rot < 0.05]
@@ -277,7 +275,7 @@ def test_no_worse_than_small_gicp_on_exact_lattice_grid(scene):
             (0, 0, 0, 0.1, 0, 0), (0, 0, 0, 0, 0.1, 0)]
     for e in grid:
         T_init = xyz_rpy64(*e) @ T_true
-        ours = icp_mod.icp(src, p1, T_init, resolution=RES)
+        ours = reg.icp(src, p1, T_init, resolution=RES)
         r = small_gicp.align(p1, src, T_init, registration_type="ICP", downsampling_resolution=1e-3,
                              max_correspondence_distance=10 * RES, max_iterations=50)
         r = small_gicp.align(p1, src, r.T_target_source, registration_type="ICP",
@@ -298,8 +296,8 @@ def test_coarse_stages_query_every_kth_point(count, k):
     valid = jnp.arange(16384) < count
     src = jnp.where(valid[:, None], src, 0.0)
     dists = jnp.asarray([2.0, 1.0, 0.4], jnp.float32)
-    clouds = icp_mod._coarse_clouds(src, valid, count, dists, False)
-    stage = [icp_mod._coarse_cloud(clouds, jnp.int32(s)) for s in range(2)]
+    clouds = _coarse.coarse_clouds(src, valid, count, dists, False)
+    stage = [_coarse.coarse_cloud(clouds, jnp.int32(s)) for s in range(2)]
     assert all(p.shape == (4096, 3) and w.shape == (4096,) for p, w, _ in stage)
     m = -(-count // k)
     for pts, w, cnt in stage:
@@ -311,19 +309,19 @@ def test_coarse_stages_query_every_kth_point(count, k):
 @pytest.mark.parametrize("n", [2048, 4096, 6144, 8192, 16384, 24576, 65536, 262144])
 def test_coarse_rows_hold_every_count(n):
     """The coarse cloud's static rows hold every k-th point for every valid count <= n."""
-    rows = icp_mod._coarse_rows(n, False)
+    rows = _coarse.coarse_rows(n, False)
     assert rows <= n and rows % min(n, 2048) == 0
     count = np.arange(n + 1)
-    k = np.clip(count // icp_mod._COARSE_MIN_QUERIES, 1, icp_mod._COARSE_EVERY)
+    k = np.clip(count // _coarse.COARSE_MIN_QUERIES, 1, _coarse.COARSE_EVERY)
     assert int(np.max(-(-count // k))) <= rows
-    assert icp_mod._coarse_rows(n, True) == n
+    assert _coarse.coarse_rows(n, True) == n
 
 
 def test_voxel_downsample_matches_numpy():
     rng = np.random.default_rng(3)
     pts = rng.uniform(-1.0, 1.0, (500, 3)).astype(np.float32)
     n_valid, cell = 430, 0.3
-    cent, w, m = icp_mod._voxel_downsample(jnp.asarray(pts), jnp.arange(500) < n_valid, 0.3)
+    cent, w, m = _coarse.voxel_downsample(jnp.asarray(pts), jnp.arange(500) < n_valid, 0.3)
     keys = np.floor(pts[:n_valid] / np.float32(cell)).astype(np.int64)
     uniq, inv = np.unique(keys, axis=0, return_inverse=True)
     ref_c = np.stack([np.bincount(inv.ravel(), weights=pts[:n_valid, a]) for a in range(3)], -1)
@@ -343,10 +341,10 @@ def test_symmetric_coarse_matching_recovers_exactly(scene):
     p1, _, _ = scene
     T_true = xyz_rpy64(0.4, -0.3, 0.1, 0.03, -0.02, 0.15)
     src = _moved(p1[::2], np.linalg.inv(T_true))
-    r = icp_mod.icp(src, p1, np.eye(4), resolution=RES, coarse_matching="symmetric")
-    assert int(r.status) == icp_mod.STATUS_CONVERGED
+    r = reg.icp(src, p1, np.eye(4), resolution=RES, coarse_matching="symmetric")
+    assert int(r.status) == Status.CONVERGED
     rot, tr = _errors(r.T_target_source, T_true)
     assert rot < 1e-4 and tr < 1e-4
     assert int(r.num_inliers) == len(src)
     with pytest.raises(ValueError, match="coarse_matching"):
-        icp_mod.icp(src, p1, np.eye(4), resolution=RES, coarse_matching="both")
+        reg.icp(src, p1, np.eye(4), resolution=RES, coarse_matching="both")

@@ -2,17 +2,15 @@
 overlap extraction, jitted/differentiable point-to-point ICP, rendezvous initial estimates,
 error metrics and rigid-transform helpers."""
 
-# ``registration.icp`` is the function; reach the module as ``octomerge_jax.registration.icp``
-# through ``importlib.import_module`` (the function shadows the module attribute).
 from .correlation import CorrelationResult, correlation_search
 from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result,
                     default_levels, fused_log_odds, pose_from_increment, prepare_alignment,
                     problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
                     transformed_occupancy)
 from .evaluate import RegistrationStats, evaluate_registration
-from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded, icp_padded_stack,
-                  invert_result,
-                  pad_points, pad_points_host, sequential_default, stage_distances)
+from ._icp import (COARSE_MATCHING, IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
+                   icp_padded_stack, invert_result, kabsch, pad_points, pad_points_host, sequential_default,
+                   stage_distances)
 from .metrics import (point_displacement, rotation_angle_error, rotation_error, translation_distance,
                       translation_error)
 from .neighbors import HashGrid, any_within, build_grid, build_grids, nearest
@@ -28,8 +26,8 @@ __all__ = [
     "AlignProblem", "AlignResult", "align_dense", "alignment_loss", "best_result", "default_levels",
     "fused_log_odds", "pose_from_increment", "prepare_alignment", "problem_loss",
     "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
-    "RegistrationStats", "evaluate_registration", "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded", "icp_padded_stack",
-    "invert_result", "pad_points_host", "sequential_default",
+    "RegistrationStats", "evaluate_registration", "COARSE_MATCHING", "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded", "icp_padded_stack",
+    "invert_result", "kabsch", "pad_points_host", "sequential_default",
     "pad_points", "stage_distances", "rotation_angle_error", "rotation_error",
     "translation_distance", "translation_error", "point_displacement", "Status", "HashGrid", "any_within", "build_grid",
     "build_grids", "nearest", "Overlap", "overlap", "occupied_points", "lift_2d",

@@ -18,7 +18,7 @@ import numpy as np
 
 from . import neighbors
 from .. import se3
-from .icp import pad_points_host
+from ._icp import pad_points_host
 
 __all__ = ["RegistrationStats", "evaluate_registration"]
 
