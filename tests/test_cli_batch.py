@@ -9,14 +9,12 @@ import csv
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import octomerge_jax as om
 
-RES = 0.1
 TIMEOUT_S = 600
 HEADER = "map1,map2,output,x,y,z,roll,pitch,yaw\n"
 ZERO = ",0,0,0,0,0,0\n"
