@@ -196,7 +196,7 @@ def test_gap_decomposition_matches_greedy():
     # every cell of every interval, in one batch
     owner = np.repeat(np.arange(len(S)), total)
     t = np.arange(owner.size) - np.repeat(np.cumsum(total) - total, total)
-    cell = jax.jit(_gaps.gap_cell)
+    cell = jax.jit(lambda sh, sl, eh, el, t: _gaps.cell_code(sh, sl, eh, el, _gaps.gap_cell_info(sh, sl, eh, el, t)))
     h, lo, d = cell(jnp.asarray(s[owner, 0]), jnp.asarray(s[owner, 1]), jnp.asarray(e[owner, 0]),
                     jnp.asarray(e[owner, 1]), jnp.asarray(t, jnp.int32))
     got = list(zip(morton.join_codes(np.stack([h, lo], -1)).tolist(), np.asarray(d).tolist()))

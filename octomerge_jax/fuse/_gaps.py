@@ -106,14 +106,9 @@ def cell_code(sh, sl, eh, el, info):
     return jnp.where(whole, 0, h), jnp.where(whole, 0, l), _D - level
 
 
-def gap_cell(sh, sl, eh, el, t):
-    """The ``t``-th cell (Morton order) of the decomposition of ``[s, e)``:
-    ``(hi, lo, depth)``. ``t`` must be below the interval's cell count."""
-    return cell_code(sh, sl, eh, el, gap_cell_info(sh, sl, eh, el, t))
-
-
 def gap_cell_once(gate, bounds, t):
-    """``gap_cell`` of the intervals ``bounds() = (s_hi, s_lo, e_hi, e_lo)`` (a function: its
+    """The ``t``-th cell ``(hi, lo, depth)`` (Morton order) of the decompositions of the
+    intervals ``bounds() = (s_hi, s_lo, e_hi, e_lo)`` (a function: its
     gathers run inside), the bounds and the cells' closed form computed once into memory
     (``materialize`` on a traced True ``gate``), not once per consumer (the code, depth and
     value scatters)."""

@@ -65,7 +65,11 @@ def _explicit_ends(mk: OccupancyMap):
 @jax.jit
 def boundary_counts(maps):
     """``(m,)`` rows of each map's boundary list: leaves plus explicit ends."""
-    return jnp.stack([mk.count + jnp.sum(_explicit_ends(mk)[3]) for mk in maps]).astype(jnp.int32)
+    counts = []
+    for mk in maps:
+        _, _, _, explicit = _explicit_ends(mk)
+        counts.append(mk.count + jnp.sum(explicit))
+    return jnp.stack(counts).astype(jnp.int32)
 
 
 def _boundaries(mk: OccupancyMap, row0: int, size: int):
