@@ -280,7 +280,7 @@ def points_to_keys(points, resolution):
     return keys.astype(jnp.int32), ok
 
 
-def _low_mask(shift):
+def low_bit_masks(shift):
     """(hi_mask, lo_mask) int32 selecting the low ``shift`` bits (0..48) of a code."""
     shift = jnp.asarray(shift, jnp.int32)
     lo_bits = jnp.minimum(shift, WORD_BITS)
@@ -292,20 +292,14 @@ def _low_mask(shift):
 
 def truncate_words(words, depth):
     """Min-corner code of the depth-``depth`` node containing ``words`` (clears low bits)."""
-    hi_mask, lo_mask = _low_mask(3 * (TREE_DEPTH - jnp.asarray(depth, jnp.int32)))
-    hi = words[..., 0] & ~hi_mask
-    lo = words[..., 1] & ~lo_mask
-    return jnp.stack([hi, lo], axis=-1)
+    k = TREE_DEPTH - jnp.asarray(depth, jnp.int32)
+    return jnp.stack(code_truncate(words[..., 0], words[..., 1], k), axis=-1)
 
 
 def child_index_words(words, depth):
     """Child index (0..7) within its parent of the depth-``depth`` node containing ``words``
     (``depth >= 1``; bit0 = x, bit1 = y, bit2 = z as OctoMap's ``computeChildIdx``)."""
-    shift = 3 * (TREE_DEPTH - jnp.asarray(depth, jnp.int32))  # 0..45
-    in_hi = shift >= WORD_BITS
-    word = jnp.where(in_hi, words[..., 0], words[..., 1])
-    s = jnp.where(in_hi, shift - WORD_BITS, shift)
-    return jnp.right_shift(word, s) & 7
+    return code_digit(words[..., 0], words[..., 1], TREE_DEPTH - jnp.asarray(depth, jnp.int32))
 
 
 def or_offset_words(words, k, shift):
@@ -324,12 +318,7 @@ def or_offset_words(words, k, shift):
 def end_words(words, depth):
     """Exclusive end ``code + 8^(16 - depth)`` of nodes as words ``(..., 2)``; the end of the
     whole key space (2^48) is ``(SENTINEL_HI, 0)``."""
-    shift = 3 * (TREE_DEPTH - jnp.asarray(depth, jnp.int32))
-    small = shift < WORD_BITS
-    lo = words[..., 1] + jnp.where(small, jnp.left_shift(1, jnp.minimum(shift, WORD_BITS - 1)), 0)
-    carry = jnp.right_shift(lo, WORD_BITS)
-    hi = words[..., 0] + jnp.where(small, carry, jnp.left_shift(1, jnp.maximum(shift - WORD_BITS, 0)))
-    return jnp.stack([hi, lo & WORD_MASK], axis=-1)
+    return jnp.stack(code_end(words[..., 0], words[..., 1], jnp.asarray(depth, jnp.int32)), axis=-1)
 
 
 def top_bit(hi, lo):
@@ -373,7 +362,8 @@ def searchsorted_words(sorted_words, query_words, side: str = "right"):
 # ----------------------------------------------------------------------------- merge path
 
 
-def _less(ah, al, bh, bl):
+def code_less(ah, al, bh, bl):
+    """Lexicographic ``a < b`` on codes given as word columns ``(hi, lo)``."""
     return (ah < bh) | ((ah == bh) & (al < bl))
 
 
@@ -421,7 +411,7 @@ def _merge_scan(ah, al, bh, bl, counts=None):
     def a_before_cut(i):  # a_i is among the first d merged iff a_i <= b[d - i - 1]
         jb = d - i - 1
         jc, ic = jnp.clip(jb, 0, cb - 1), jnp.clip(i, 0, ca - 1)
-        return (jb >= nb) | ((jb >= 0) & ~_less(bh[jc], bl[jc], ah[ic], al[ic]))
+        return (jb >= nb) | ((jb >= 0) & ~code_less(bh[jc], bl[jc], ah[ic], al[ic]))
 
     x = _bsearch(jnp.maximum(d - nb, 0), jnp.minimum(d, na), a_before_cut, int(ca).bit_length())
     y = d - x  # cut k: x[k] a's and y[k] b's precede it
@@ -430,7 +420,7 @@ def _merge_scan(ah, al, bh, bl, counts=None):
     def step(state):
         i, j = state  # next a and b of each chunk
         ai, bj = a[jnp.minimum(i, ca - 1)], b[jnp.minimum(j, cb - 1)]
-        take_a = (i < x[1:]) & ((j >= y[1:]) | ~_less(bj[:, 0], bj[:, 1], ai[:, 0], ai[:, 1]))
+        take_a = (i < x[1:]) & ((j >= y[1:]) | ~code_less(bj[:, 0], bj[:, 1], ai[:, 0], ai[:, 1]))
         take_b = ~take_a & (j < y[1:])
         key = jnp.where(take_a, i, ~jnp.where(take_b, j, cb))
         return (i + take_a.astype(jnp.int32), j + take_b.astype(jnp.int32)), (key, jnp.where(take_a, j, i))
@@ -483,3 +473,73 @@ def merge_sorted(a, b):
     from_a = src >= 0
     ia, ib = jnp.clip(src, 0, ca - 1), jnp.clip(~src, 0, cb - 1)
     return tuple(jnp.where(from_a, x[ia], y[ib]) for x, y in zip(a, b))
+
+
+# --- added for fuse: two-word code arithmetic on word columns
+# A code is (hi, lo) int32 words of 24 bits = 8 octal digits each; digit k (0 = finest level)
+# lives in lo for k < 8, in hi for 8 <= k < 16, and digit 16 (only for the end 2^48 of the
+# whole volume) is bit 24 of hi. Level indices k may be traced. Everything below is
+# elementwise and loop-free (XLA fuses it into one pass).
+
+__all__ += ["low_bit_masks", "code_less", "code_digit", "code_low_masks", "code_low_nonzero",
+            "code_truncate", "code_put_digit", "code_end", "code_digit_sum"]
+
+
+def _digit_position(k):
+    """``(in_hi, shift within the word)`` of octal digit ``k`` (0..16)."""
+    in_hi = k >= 8
+    return in_hi, jnp.where(in_hi, 3 * (k - 8), 3 * k)
+
+
+def code_digit(hi, lo, k):
+    """Octal digit ``k`` (0 = finest level, 16 = the bit of 2^48) of codes ``(hi, lo)``."""
+    in_hi, sh = _digit_position(k)
+    return jnp.right_shift(jnp.where(in_hi, hi, lo), sh) & 7
+
+
+def code_low_masks(k):
+    """``(hi_mask, lo_mask)`` of the octal digits below level ``k`` (0..16)."""
+    return low_bit_masks(3 * k)
+
+
+def code_low_nonzero(hi, lo, k):
+    """Any digit below level ``k`` non-zero (``code mod 8^k != 0``)."""
+    hm, lm = code_low_masks(k)
+    return ((lo & lm) != 0) | ((hi & hm) != 0)
+
+
+def code_truncate(hi, lo, k):
+    """Codes ``(hi, lo)`` with the digits below level ``k`` cleared (the min corner of the
+    enclosing node at depth ``16 - k``)."""
+    hm, lm = code_low_masks(k)
+    return hi & ~hm, lo & ~lm
+
+
+def code_put_digit(hi, lo, k, val):
+    """Or ``val`` (0..7) into digit ``k`` (which must be clear) of codes ``(hi, lo)``."""
+    in_hi, sh = _digit_position(k)
+    v = jnp.left_shift(val, sh)
+    return jnp.where(in_hi, hi | v, hi), jnp.where(in_hi, lo, lo | v)
+
+
+def code_end(hi, lo, depth):
+    """Exclusive end ``code + 8^(16 - depth)`` of nodes at ``depth`` as words ``(hi, lo)``;
+    the end of the whole key space (2^48) is ``(SENTINEL_HI, 0)``."""
+    shift = 3 * (TREE_DEPTH - depth)
+    small = shift < WORD_BITS
+    lo = lo + jnp.where(small, jnp.left_shift(1, jnp.minimum(shift, WORD_BITS - 1)), 0)
+    carry = jnp.right_shift(lo, WORD_BITS)
+    hi = hi + jnp.where(small, carry, jnp.left_shift(1, jnp.maximum(shift - WORD_BITS, 0)))
+    return hi, lo & WORD_MASK
+
+
+def code_digit_sum(hi, lo):
+    """Sum of the 16 octal digits of codes ``(hi, lo)``, loop-free: SWAR sums of digit pairs,
+    then of quads, in each word."""
+
+    def word(w):
+        v = (w & 0o07070707) + (jnp.right_shift(w, 3) & 0o07070707)
+        v = (v & 0o00770077) + (jnp.right_shift(v, 6) & 0o00770077)
+        return (v & 0xFFF) + jnp.right_shift(v, 12)
+
+    return word(hi) + word(lo)

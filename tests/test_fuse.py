@@ -13,6 +13,7 @@ from hypothesis import given, settings, strategies as st
 import importlib
 
 F = importlib.import_module("octomerge_jax.fuse")  # the package re-exports the function `fuse`
+from octomerge_jax.fuse import _gaps, _many, _pair, _rules, _sizing
 from octomerge_jax import map as omap
 from octomerge_jax import morton, tree
 
@@ -189,13 +190,13 @@ def test_gap_decomposition_matches_greedy():
             E.append(b)
     s = morton.split_codes(np.array(S, np.uint64))
     e = morton.split_codes(np.array(E, np.uint64))
-    total = np.asarray(jax.jit(lambda s, e: F._gap_plan(s[:, 0], s[:, 1], e[:, 0], e[:, 1]))(s, e))
+    total = np.asarray(jax.jit(lambda s, e: _gaps.gap_cell_count(s[:, 0], s[:, 1], e[:, 0], e[:, 1]))(s, e))
     want = [greedy_cells(a, b) for a, b in zip(S, E)]
     np.testing.assert_array_equal(total, [len(w) for w in want])
     # every cell of every interval, in one batch
     owner = np.repeat(np.arange(len(S)), total)
     t = np.arange(owner.size) - np.repeat(np.cumsum(total) - total, total)
-    cell = jax.jit(F._gap_cell)
+    cell = jax.jit(lambda sh, sl, eh, el, t: _gaps.cell_code(sh, sl, eh, el, _gaps.gap_cell_info(sh, sl, eh, el, t)))
     h, lo, d = cell(jnp.asarray(s[owner, 0]), jnp.asarray(s[owner, 1]), jnp.asarray(e[owner, 0]),
                     jnp.asarray(e[owner, 1]), jnp.asarray(t, jnp.int32))
     got = list(zip(morton.join_codes(np.stack([h, lo], -1)).tolist(), np.asarray(d).tolist()))
@@ -225,8 +226,8 @@ def test_compact_gap_list_matches_bruteforce(seed, rule):
     m1, m2 = pair(seed)
     weights = (0.5, 2.0) if rule == "weighted" else (1.0, 1.0)
     want = ref_fuse([m1, m2], rule, weights)
-    out, rep = F.fuse(m1, m2, rule, weights=weights, capacity=CAP_OUT, gap_capacity=GAP_CAP,
-                      return_report=True)
+    out, rep = F.fuse_with_report(m1, m2, rule, weights=weights, capacity=CAP_OUT,
+                                  gap_capacity=GAP_CAP)
     assert not bool(rep.overflow)
     assert_same_leaves(out, want)
     assert_same_leaves(F.fuse(m1, m2, rule, weights=weights, capacity=CAP_OUT, gap_capacity=1), want)
@@ -235,11 +236,11 @@ def test_compact_gap_list_matches_bruteforce(seed, rule):
     # leaves with gaps too short is re-planned larger
     w1, w2 = (jnp.float32(w) for w in weights)
     for gap_capacity in (None, 1):
-        out, rep = F._fuse_pair_planned(m1, m2, w1, w2, jnp.int32(F._MODE[rule]), True, gap_capacity,
-                                        max(m1.num_leaves, m2.num_leaves))
+        out, rep = _pair.fuse_pair_planned(m1, m2, w1, w2, jnp.int32(_rules.MODE[rule]), True, gap_capacity,
+                                           max(m1.num_leaves, m2.num_leaves))
         assert_same_leaves(out, want)
-        assert not bool(rep.overflow) and rep.host() | {"capacity": 0} == F.fuse(
-            m1, m2, rule, weights=weights, capacity=CAP_OUT, return_report=True)[1].host() | {"capacity": 0}
+        assert not bool(rep.overflow) and rep.host() | {"capacity": 0} == F.fuse_with_report(
+            m1, m2, rule, weights=weights, capacity=CAP_OUT)[1].host() | {"capacity": 0}
         assert out.capacity == omap.bucket_capacity(int(rep.refined_cells))
 
 
@@ -264,7 +265,7 @@ def test_report_counts_cases():
     m2 = omap.from_leaves(c2, [16, 14, 14, 13], [0.85, 0.85, -0.4, 1.7], RES, capacity=CAP_IN)
     m3 = omap.from_leaves(np.array([base + 3 * s13], np.uint64), [13], [0.4], RES, capacity=CAP_IN)
     m1 = F.fuse(m1, m3, prune=False, capacity=CAP_OUT).with_capacity(CAP_IN)  # + an equal-depth leaf
-    out, rep = F.fuse(m1, m2, return_report=True, capacity=CAP_OUT)
+    out, rep = F.fuse_with_report(m1, m2, capacity=CAP_OUT)
     assert_same_leaves(out, ref_fuse([m1, m2]))
     r = rep.host()
     assert r["leaves_in"] == [3, 4]
@@ -281,21 +282,21 @@ def test_short_list_of_leaves_with_gaps(monkeypatch):
     m1, m2 = pair(3)
     want = ref_fuse([m1, m2], "sum", (1.0, 1.0))
     one, mode = jnp.float32(1), jnp.int32(0)
-    _, short, (_, n_leaves) = F._fuse_pair(m1, m2, one, one, mode, CAP_OUT, True, gap_capacity=GAP_CAP,
-                                           gap_leaves=1)
+    _, short, (_, n_leaves) = _pair.pair_kernel(m1, m2, one, one, mode, CAP_OUT, True, gap_capacity=GAP_CAP,
+                                                gap_leaves=1)
     assert bool(short.overflow) and int(n_leaves) > 1  # the count is exact, the list is not
     calls = []
-    kernel = F._fuse_pair
+    kernel = _pair.pair_kernel
 
     def spy(*args, **kw):
         calls.append(kw["gap_leaves"])
         return kernel(*args, **kw)
 
-    monkeypatch.setattr(F, "_GAP_MIN", 1)
-    monkeypatch.setattr(F, "_GAP_SHARE", CAP_OUT // GAP_CAP)  # the cell list as above
-    monkeypatch.setattr(F, "_GAP_LEAF_SHARE", CAP_OUT)  # a 1-row default list
-    monkeypatch.setattr(F, "_fuse_pair", spy)
-    out, rep = F.fuse(m1, m2, capacity=CAP_OUT, return_report=True)
+    monkeypatch.setattr(_sizing, "GAP_MIN", 1)
+    monkeypatch.setattr(_sizing, "GAP_SHARE", CAP_OUT // GAP_CAP)  # the cell list as above
+    monkeypatch.setattr(_sizing, "GAP_LEAF_SHARE", CAP_OUT)  # a 1-row default list
+    monkeypatch.setattr(_pair, "pair_kernel", spy)
+    out, rep = F.fuse_with_report(m1, m2, capacity=CAP_OUT)
     assert calls == [1, omap.bucket_capacity(int(n_leaves))] and not bool(rep.overflow)
     assert_same_leaves(out, want)
     # a gap list no shorter than the output is the per-slot layout: one run, nothing listed
@@ -311,7 +312,7 @@ def test_deep_split_is_local_and_reprunes():
     m1 = omap.from_leaves(np.array([base], np.uint64), [2], [1.7], RES, capacity=CAP_IN)
     vox = np.array([base + 12345, base + 8 ** 10 + 7, base + 8 ** 14 - 1], np.uint64)
     zero = omap.from_leaves(vox, [16] * 3, [0.0] * 3, RES, capacity=CAP_IN)
-    refined, rep = F.fuse(m1, zero, prune=False, return_report=True, capacity=CAP_OUT)
+    refined, rep = F.fuse_with_report(m1, zero, prune=False, capacity=CAP_OUT)
     n = refined.num_leaves
     assert n < 3 * 7 * 15
     # all but 3 cells are gap cells: a compact gap list too short for them re-runs with room
@@ -319,8 +320,8 @@ def test_deep_split_is_local_and_reprunes():
     for gap_capacity in (GAP_CAP, 8):
         again = F.fuse(m1, zero, prune=False, capacity=CAP_OUT, gap_capacity=gap_capacity)
         assert tree.equal(again, refined)
-    _, short = jax.jit(lambda a, b: F.fuse(a, b, prune=False, capacity=CAP_OUT, gap_capacity=8,
-                                           return_report=True))(m1, zero)
+    _, short = jax.jit(lambda a, b: F.fuse_with_report(a, b, prune=False, capacity=CAP_OUT,
+                                                       gap_capacity=8))(m1, zero)
     assert bool(short.overflow) and not bool(rep.overflow)
     lv = refined.leaves()
     assert int(np.sum(span(lv.depths).astype(np.float64))) == 8 ** 14
@@ -375,9 +376,9 @@ def test_no_recompile_within_bucket():
     m1, m3 = m1.with_capacity(cap1), m3.with_capacity(cap1)
     m2, m4 = m2.with_capacity(cap2), m4.with_capacity(cap2)
     F.fuse(m1, m2, capacity=4096, weights=(1.0, 0.5), rule="weighted")
-    before = F._fuse_pair._cache_size()
+    before = _pair.pair_kernel._cache_size()
     out = F.fuse(m3, m4, capacity=4096, weights=(0.3, 2.0), rule="weighted")
-    assert F._fuse_pair._cache_size() == before
+    assert _pair.pair_kernel._cache_size() == before
     codes, depths, vals = ref_fuse([m3, m4], "weighted", (0.3, 2.0))
     lv = out.leaves()
     np.testing.assert_array_equal(lv.codes, codes)
@@ -387,7 +388,7 @@ def test_no_recompile_within_bucket():
 
 def test_overflow_is_reported_not_silent():
     m1, m2 = pair(9)
-    out, rep = F.fuse(m1, m2, capacity=64, return_report=True)
+    out, rep = F.fuse_with_report(m1, m2, capacity=64)
     need = int(rep.refined_cells)
     assert need > 64 and bool(rep.overflow) and out.num_leaves <= 64
     with pytest.raises(ValueError, match="capacity 64"):
@@ -410,7 +411,7 @@ def test_vmap_over_stacked_pairs():
     A = [a.with_capacity(cap1) for a, _ in pairs]
     B = [b.with_capacity(cap2) for _, b in pairs]
     stack = lambda ms: jax.tree.map(lambda *x: jnp.stack(x), *ms)  # noqa: E731
-    out, rep = jax.vmap(lambda a, b: F.fuse(a, b, capacity=4096, return_report=True))(stack(A), stack(B))
+    out, rep = jax.vmap(lambda a, b: F.fuse_with_report(a, b, capacity=4096))(stack(A), stack(B))
     h = rep.host()  # per pair, as lists
     assert h["overflow"] == [False] * 3
     assert h["pruned"] == [r - o for r, o in zip(h["refined_cells"], h["leaves_out"])]
@@ -440,6 +441,13 @@ def ref_split_counts(maps):
     return [int(s.sum()) for s in split], sum(v >= 2 for v in whole.values())
 
 
+def many_kernel(maps, w, mode, capacity: int, do_prune: bool, gap_capacity: int | None = None):
+    """The m-map kernel in one call at jit's default boundary lists (twice each map's
+    capacity): ``(map, FuseReport, gap cells)``."""
+    plan = _many.plan_many(maps, tuple(2 * mk.capacity for mk in maps))
+    return _many.emit_many(plan, maps, w, mode, capacity, do_prune, gap_capacity)
+
+
 def test_fuse_many_deep_nesting_equals_fold():
     """Five maps over the same region (chains of up to five nested leaves, a duplicated map,
     sums that hit the clamps mid-way): the one-pass kernel, with boundary lists sized on the
@@ -455,13 +463,13 @@ def test_fuse_many_deep_nesting_equals_fold():
     want = (fold.leaves().codes, fold.leaves().depths, fold.leaves().log_odds)
     assert_same_leaves(fold, ref_fuse(maps))
     split, same = ref_split_counts(maps)
-    sizes = [F._list_size(int(n)) for n in np.asarray(F._boundary_counts(tuple(maps)))]
+    sizes = [_sizing.list_size(int(n)) for n in np.asarray(_many.boundary_counts(tuple(maps)))]
     assert all(s < 2 * m.capacity for s, m in zip(sizes, maps))  # the host compacts the lists
     # the jit default lists (2 x capacity rows each, 20480 in all): the known intervals are
     # compacted into the CAP_OUT rows of the output; with 32768 rows they are not
-    jit_default = [F._fuse_many(tuple(maps), jnp.ones(5, jnp.float32), jnp.int32(0), cap, True)[:2]
+    jit_default = [many_kernel(tuple(maps), jnp.ones(5, jnp.float32), jnp.int32(0), cap, True)[:2]
                    for cap in (CAP_OUT, 8 * CAP_OUT)]
-    host = F.fuse_many(maps, return_report=True)  # counted first: laid out in its own bucket
+    host = F.fuse_many_with_report(maps)  # counted first: laid out in its own bucket
     assert host[0].capacity == omap.bucket_capacity(int(host[1].refined_cells))
     for out, rep in [host] + jit_default:
         assert_same_leaves(out, want)
@@ -470,7 +478,7 @@ def test_fuse_many_deep_nesting_equals_fold():
         assert not h["overflow"] and h["leaves_in"] == [m.num_leaves for m in maps]
     # more known intervals than output rows: an overflow, reported with a lower bound that
     # exceeds the capacity (the host re-runs larger), never a silent truncation
-    _, short = F.fuse_many(maps, capacity=64, return_report=True)
+    _, short = F.fuse_many_with_report(maps, capacity=64)
     assert bool(short.overflow) and 64 < int(short.refined_cells) <= int(rep.refined_cells)
     with pytest.raises(ValueError, match="capacity 64"):
         F.fuse_many(maps, capacity=64)
@@ -482,13 +490,13 @@ def test_fuse_many_deep_nesting_equals_fold():
 @given(seed=st.integers(0, 2 ** 32 - 1))
 def test_fuse_many_pair_equals_fuse(seed):
     m1, m2 = pair(seed, values=np.float32([-2.0, 3.5, 1.7, -1.0, 0.4]))
-    a, ra = F.fuse(m1, m2, return_report=True, capacity=CAP_OUT)
+    a, ra = F.fuse_with_report(m1, m2, capacity=CAP_OUT)
     # fuse_many takes the pair kernel for two maps; the m-map kernel must agree with it
-    b, rb, _ = F._fuse_many((m1, m2), jnp.ones(2, jnp.float32), jnp.int32(0), CAP_OUT, True)
+    b, rb, _ = many_kernel((m1, m2), jnp.ones(2, jnp.float32), jnp.int32(0), CAP_OUT, True)
     assert_same_leaves(b, (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
     # with a compact gap list: one-cell intervals written as they are, the others decomposed
-    c, rc, n_gap = F._fuse_many((m1, m2), jnp.ones(2, jnp.float32), jnp.int32(0), CAP_OUT, True,
-                                gap_capacity=GAP_CAP)
+    c, rc, n_gap = many_kernel((m1, m2), jnp.ones(2, jnp.float32), jnp.int32(0), CAP_OUT, True,
+                               gap_capacity=GAP_CAP)
     assert int(n_gap) <= GAP_CAP and not bool(rc.overflow)
     assert_same_leaves(c, (a.leaves().codes, a.leaves().depths, a.leaves().log_odds))
     assert_same_leaves(F.fuse_many([m1, m2], capacity=CAP_OUT),
@@ -563,7 +571,7 @@ def test_scanned_octomap_trees_against_octomap_updates(tmp_path):
         (t.writeBinary if k == 0 else t.write)(paths[-1])
     m1 = om.load(paths[0])
     m2 = om.transform_map(om.load(paths[1]), T_1_2)
-    out, rep = F.fuse(m1, m2, return_report=True)
+    out, rep = F.fuse_with_report(m1, m2)
     assert not bool(rep.overflow) and m1.num_leaves > 10000 and m2.num_leaves > 10000
     assert int(rep.split[0]) > 0 and int(rep.split[1]) > 0  # both maps have coarser leaves split
 

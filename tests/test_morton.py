@@ -136,3 +136,39 @@ def test_leaf_cell_codes_are_the_cells_of_each_leaf():
     sub, sub_leaf = morton.leaf_cell_codes(codes, depths, idx)
     np.testing.assert_array_equal(sub, cells[idx])
     np.testing.assert_array_equal(sub_leaf, leaf[idx])
+
+
+def test_code_arithmetic_on_word_columns_matches_uint64():
+    """``code_*``: digits, masks, truncation, digit insertion, ends, order and digit sums of
+    codes given as (hi, lo) word columns, against plain uint64 arithmetic."""
+    rng = np.random.default_rng(0)
+    codes = np.concatenate([rng.integers(0, 1 << 48, 200, dtype=np.uint64),
+                            np.array([0, (1 << 48) - 1, 1 << 24, (1 << 24) - 1], np.uint64)])
+    k = rng.integers(0, 16, codes.size).astype(np.int32)
+    hi, lo = (jnp.asarray(x) for x in morton.split_codes(codes).T)
+    kj = jnp.asarray(k)
+    c = codes.astype(np.uint64)
+    shift = (3 * k).astype(np.uint64)
+    low = (np.uint64(1) << shift) - np.uint64(1)
+    digits = (c >> shift) & np.uint64(7)
+
+    def join(h, l):
+        return morton.join_codes(np.stack([np.asarray(h), np.asarray(l)], -1))
+
+    np.testing.assert_array_equal(np.asarray(morton.code_digit(hi, lo, kj)), digits)
+    np.testing.assert_array_equal(np.asarray(morton.code_low_nonzero(hi, lo, kj)), (c & low) != 0)
+    trunc = c & ~low
+    np.testing.assert_array_equal(join(*morton.code_truncate(hi, lo, kj)), trunc)
+    val = rng.integers(0, 8, codes.size).astype(np.int32)
+    th, tl = (jnp.asarray(x) for x in morton.split_codes(trunc).T)
+    put = morton.code_put_digit(th, tl, kj, jnp.asarray(val))
+    np.testing.assert_array_equal(join(*put), trunc | (val.astype(np.uint64) << shift))
+    depth = 16 - k
+    np.testing.assert_array_equal(join(*morton.code_end(th, tl, jnp.asarray(depth))),
+                                  trunc + (np.uint64(1) << shift))
+    np.testing.assert_array_equal(join(*morton.code_end(jnp.zeros(1, jnp.int32), jnp.zeros(1, jnp.int32),
+                                                        jnp.zeros(1, jnp.int32))), [1 << 48])
+    want_sum = sum((c >> np.uint64(3 * j)) & np.uint64(7) for j in range(16))
+    np.testing.assert_array_equal(np.asarray(morton.code_digit_sum(hi, lo)), want_sum)
+    perm = rng.permutation(codes.size)
+    np.testing.assert_array_equal(np.asarray(morton.code_less(hi, lo, hi[perm], lo[perm])), c < c[perm])

@@ -1,0 +1,81 @@
+"""The capacity policies of fusion, in one place: how many rows the output, the lists of gap
+cells and of leaves with gaps, and ``fuse_many``'s boundary lists get, and the host loops
+that re-run a kernel larger when a list proved short. Why these sizes: ``docs/design.md``,
+"Gap-cell lists" and "Bucket sizing of the output".
+"""
+
+from __future__ import annotations
+
+from .._ops import bucket_capacity
+
+# Host defaults, shares of the output's rows with a floor: gap cells are a few per cent of a
+# refinement at most, and leaves with gaps fewer than their cells.
+GAP_SHARE = 8  # gap-cell list: capacity / 8 rows
+GAP_LEAF_SHARE = 16  # the pair kernel's list of leaves with gaps: capacity / 16 rows
+GAP_MIN = 512  # floor of both lists, so small outputs never re-run for a few gaps
+
+
+def default_gap_capacity(capacity: int) -> int | None:
+    """Rows of the gap-cell list for an output of ``capacity`` rows, so that the gap layout
+    runs on a short list instead of every output slot: ``max(capacity / 8, 512)``, or
+    ``None`` (the per-slot layout) when the list would not be smaller."""
+    room = max(int(capacity) // GAP_SHARE, GAP_MIN)
+    return room if room < capacity else None
+
+
+def default_gap_leaves(capacity: int) -> int:
+    """Rows of the pair kernel's list of leaves with gaps for an output of ``capacity`` rows,
+    so that only those leaves compute their gaps: ``max(capacity / 16, 512)``."""
+    return max(int(capacity) // GAP_LEAF_SHARE, GAP_MIN)
+
+
+def list_size(n: int) -> int:
+    """Rows of a ``fuse_many`` boundary list of ``n`` entries, sized to the maps' contents
+    rather than their capacities: ``n`` rounded up to an eighth of its power-of-two bucket
+    (8 sizes per octave, so few compilations)."""
+    step = max(bucket_capacity(n) // 8, 64)
+    return -(-max(int(n), 1) // step) * step
+
+
+def sized_gaps(kernel, cap: int, traced: bool, gap_capacity):
+    """``kernel(cap, gap_capacity, gap_leaves) -> (map, report, (gap cells, leaves with
+    gaps))`` with the gap lists sized: on the host (``gap_capacity=None``)
+    ``default_gap_capacity`` cells and ``default_gap_leaves`` leaves, re-run with room for all
+    when there are more; under ``jit``/``vmap`` as given (``None``: every slot, never short;
+    the leaf list as long as the cell list). Returns ``(map, report)``."""
+    leaves = None
+    if not traced:
+        gap_capacity = default_gap_capacity(cap) if gap_capacity is None else gap_capacity
+        if gap_capacity is not None and gap_capacity >= cap:
+            gap_capacity = None  # no shorter than the output: the per-slot layout, never short
+        leaves = None if gap_capacity is None else min(gap_capacity, default_gap_leaves(cap))
+    out, rep, (n_gap, n_leaves) = kernel(cap, gap_capacity, leaves)
+    # the cell count is exact when the list held every leaf with gaps, else a lower bound
+    # (the pair kernel), so a second re-run may be needed
+    while not traced and gap_capacity is not None:
+        n_gap, n_leaves = int(n_gap), int(n_leaves)
+        if n_gap <= gap_capacity and n_leaves <= leaves:
+            break
+        leaves = max(leaves, bucket_capacity(n_leaves))
+        if n_gap > gap_capacity:
+            more = bucket_capacity(n_gap)
+            gap_capacity = more if more < cap else None
+        out, rep, (n_gap, n_leaves) = kernel(cap, gap_capacity, leaves)
+    return out, rep
+
+
+def sized_output(run, guess: int, capacity: int | None, traced: bool, what: str):
+    """``run(cap) -> (map, report)`` at ``capacity`` rows, or, when it is ``None`` (host
+    only), at the bucket of ``guess`` cells, re-run at the refinement's own bucket while it
+    does not fit. Returns ``(map, report)``; raises ``ValueError`` naming ``what`` when no
+    capacity is given under ``jit``/``vmap``."""
+    if capacity is not None:
+        return run(int(capacity))
+    if traced:
+        raise ValueError(f"{what}: pass a static capacity= when calling under jit/vmap")
+    cap = bucket_capacity(guess)
+    out, rep = run(cap)
+    while int(rep.refined_cells) > cap:  # a lower bound when it overflowed: re-run larger
+        cap = bucket_capacity(int(rep.refined_cells))
+        out, rep = run(cap)
+    return out, rep
