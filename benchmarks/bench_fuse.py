@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import importlib
 import resource
 import statistics
 import time
@@ -57,7 +56,7 @@ import numpy as np
 from octomerge_jax import map as omap
 from octomerge_jax import morton
 
-F = importlib.import_module("octomerge_jax.fuse")  # the package re-exports the function `fuse`
+from octomerge_jax import fusion as F
 
 RES = 0.1
 P = omap.OccupancyParams()
@@ -236,10 +235,12 @@ def bench_pairs(sizes, kinds, repeats, exe=None):
             print(f"{name:>7} {kind:>5} (no simulated pair at this size)")
             continue
         m1, m2 = robot_pair(name) if kind == "robots" else make_pair(SIZES[name], kind=kind)
-        _, rep = F.fuse(m1, m2, return_report=True)  # host capacity planning
+        _, rep = F.fuse_with_report(m1, m2)  # host capacity planning
         cap = omap.bucket_capacity(int(rep.refined_cells))  # the refinement's own bucket
-        n_gap = int(F._fuse_pair(m1, m2, jnp.float32(1), jnp.float32(1), jnp.int32(F._MODE["sum"]), cap,
-                                 True, gap_capacity=None)[2][0])  # gap cells of the refinement
+        # gap cells of the refinement: its cells less those of the leaves that are not split
+        # (a same-depth pair is one cell)
+        n_gap = int(rep.refined_cells) - (m1.num_leaves - int(rep.split[0]) + m2.num_leaves - int(rep.split[1])
+                                          - int(rep.same_depth))
         jax.clear_caches()  # the planning call above may have compiled this capacity already
         t0 = time.perf_counter()
         jax.block_until_ready(F.fuse(m1, m2, capacity=cap).code)
@@ -304,7 +305,7 @@ def bench_many(shape, ms, layout, repeats):
         # call (each fold step and fuse_many) runs at its own refinement's bucket
         caps, acc = [], maps[0]
         for mk in maps[1:]:
-            acc, rep = F.fuse(acc, mk, return_report=True)
+            acc, rep = F.fuse_with_report(acc, mk)
             caps.append(omap.bucket_capacity(int(rep.refined_cells)))
         fold_out = acc
 
@@ -314,7 +315,7 @@ def bench_many(shape, ms, layout, repeats):
                 a = F.fuse(a, mk, capacity=c)
             return a.code
 
-        many_out, rep = F.fuse_many(maps, return_report=True)
+        many_out, rep = F.fuse_many_with_report(maps)
         cap = omap.bucket_capacity(int(rep.refined_cells))
         tf, tm = timed_pair(fold, lambda: F.fuse_many(maps, capacity=cap).code, repeats)
         n = fold_out.num_leaves

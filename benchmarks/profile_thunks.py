@@ -51,7 +51,7 @@ def _fuse_call(args):
     from octomerge_jax import map as omap
 
     m1, m2 = bench_fuse.make_pair(bench_fuse.SIZES[args.size])
-    _, rep = bench_fuse.F.fuse(m1, m2, return_report=True)
+    _, rep = bench_fuse.F.fuse_with_report(m1, m2)
     cap = omap.bucket_capacity(int(rep.refined_cells))
     return lambda: bench_fuse.F.fuse(m1, m2, capacity=cap).code
 

@@ -1,4 +1,4 @@
-"""Tests of ``octomerge_jax.fuse`` against independent references: a brute-force NumPy
+"""Tests of ``octomerge_jax.fusion`` against independent references: a brute-force NumPy
 fusion over expanded voxels with its own maximal prune, OctoMap (pyoctomap) voxel updates,
 and a greedy interval decomposition."""
 
@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-import importlib
 
-F = importlib.import_module("octomerge_jax.fuse")  # the package re-exports the function `fuse`
-from octomerge_jax.fuse import _gaps, _many, _pair, _rules, _sizing
+from octomerge_jax import fusion as F
+from octomerge_jax.fusion import _gaps, _many, _pair, _rules, _sizing
 from octomerge_jax import map as omap
 from octomerge_jax import morton, tree
 

@@ -20,7 +20,7 @@ import pytest
 from octomerge_jax import morton, tree
 from octomerge_jax.config import (COARSE_MATCHING_CHOICES, MergeConfig, config_from_dict, dumps_toml,
                                   load_config, save_config)
-from octomerge_jax.fuse import fuse
+from octomerge_jax.fusion import fuse
 from octomerge_jax.map import from_leaves
 from octomerge_jax.registration import COARSE_MATCHING
 from octomerge_jax.pipeline import (
