@@ -23,6 +23,7 @@ import argparse
 import importlib
 import platform
 import time
+import warnings
 
 import _host_memory
 import jax
@@ -34,7 +35,6 @@ from scipy.spatial import cKDTree
 
 from octomerge_jax import se3 as rigid
 from octomerge_jax.registration import metrics, overlap
-from octomerge_jax.registration._solver import _jaxopt
 from octomerge_jax.sim import scene_pair
 from octomerge_jax import se3
 xyz_rpy64 = functools.partial(se3.from_xyz_rpy, xp=np)  # float64 ground truth
@@ -81,7 +81,9 @@ def gauss_newton(src, dst, w, T, iters):
 
 
 def jaxopt_solver(kind, iters):
-    jaxopt = _jaxopt()
+    with warnings.catch_warnings():  # jaxopt's "no longer maintained" notice
+        warnings.filterwarnings("ignore", message="JAXopt is no longer maintained", category=DeprecationWarning)
+        import jaxopt
 
     def residual(xi, src, dst, sw, T):
         return (sw[:, None] * (rigid.transform_points(_increment(T, xi), src) - dst)).ravel()

@@ -5,10 +5,11 @@ error metrics and rigid-transform helpers."""
 # ``registration.icp`` is the function; reach the module as ``octomerge_jax.registration.icp``
 # through ``importlib.import_module`` (the function shadows the module attribute).
 from .correlation import CorrelationResult, correlation_search
-from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result,
-                    default_levels, fused_log_odds, pose_from_increment, prepare_alignment,
-                    problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
-                    transformed_occupancy)
+from . import dense
+from ._dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result,
+                     default_levels, fused_log_odds, level_losses, pose_from_increment, prepare_alignment,
+                     problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
+                     transformed_occupancy)
 from .evaluate import RegistrationStats, evaluate_registration
 from .icp import (IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded, icp_padded_stack,
                   invert_result,
@@ -26,7 +27,7 @@ from ..se3 import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quater
 __all__ = [
     "CorrelationResult", "correlation_search",
     "AlignProblem", "AlignResult", "align_dense", "alignment_loss", "best_result", "default_levels",
-    "fused_log_odds", "pose_from_increment", "prepare_alignment", "problem_loss",
+    "fused_log_odds", "level_losses", "pose_from_increment", "prepare_alignment", "problem_loss",
     "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
     "RegistrationStats", "evaluate_registration", "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded", "icp_padded_stack",
     "invert_result", "pad_points_host", "sequential_default",
