@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 from functools import partial
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, get_args
 
 import jax
 import jax.numpy as jnp
@@ -41,8 +41,7 @@ from ._problem import AlignProblem, both_at, pose_from_increment, prepare_alignm
 
 __all__ = ["AlignResult", "Solver", "align_dense", "best_result", "solve_alignment", "solve_alignment_batch"]
 
-Solver = Literal["lbfgs", "jaxopt"]
-SOLVERS = ("lbfgs", "jaxopt")
+Solver = Literal["lbfgs", "jaxopt"]  # the minimiser: _lbfgs.minimize or _jaxopt.minimize_jaxopt
 
 
 @jax.tree_util.register_dataclass
@@ -104,7 +103,7 @@ def _objective(z, pair, T_start, center, radius):
     return pair_loss(pair, pose_from_increment(T_start, z, center, radius))
 
 
-def _solve_level(problem: AlignProblem, opts: _Options, maxiter: int, solver: str, T, i, active=True):
+def _solve_level(problem: AlignProblem, opts: _Options, maxiter: int, solver: Solver, T, i, active=True):
     """Minimise level ``i`` (traced) from ``T``; an inactive solve (``tol = inf``) stops at its
     first evaluation, also as one member of a ``vmap`` batch (where a ``cond`` would run both
     branches for every member)."""
@@ -131,7 +130,7 @@ def _skip_level(maxiter: int, T, i):
     return T, _LevelOutcome(nan, jnp.int32(0), jnp.bool_(True), jnp.float32(jnp.nan))
 
 
-def _level_step(problem: AlignProblem, opts: _Options, maxiter: int, solver: str, T0, start_loss, T, i):
+def _level_step(problem: AlignProblem, opts: _Options, maxiter: int, solver: Solver, T0, start_loss, T, i):
     """Scan step ``i``: levels ``0..L-1`` (the ones before ``start_level`` skipped), then one
     more, the guard: a path that ends with a higher finest loss than the start's is dropped
     and the finest level solved again from the start. Returns ``(T, (outcome, restart))``."""
@@ -154,7 +153,7 @@ def _status(loss, T, overlap, agree, converged, opts: _Options):
            jnp.where(~converged, int(Status.MAX_ITERATIONS), int(Status.CONVERGED))))).astype(jnp.int32)
 
 
-def _solve(problem: AlignProblem, T_init, opts: _Options, maxiter: int, solver: str) -> AlignResult:
+def _solve(problem: AlignProblem, T_init, opts: _Options, maxiter: int, solver: Solver) -> AlignResult:
     """Coarse-to-fine minimisation (one compiled level step, scanned over the levels and the
     guard step), then the finest-level scores and the status."""
     T0 = jnp.asarray(T_init, jnp.float32)
@@ -194,8 +193,8 @@ def _options(problem, maxiter, tol, xtol, max_step, min_overlap, min_agreement, 
     """Validate the solve options on the host (``ValueError`` naming the argument)."""
     if int(maxiter) < 1:
         raise ValueError(f"maxiter must be >= 1, got {maxiter}")
-    if solver not in SOLVERS:
-        raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+    if solver not in get_args(Solver):
+        raise ValueError(f"solver must be one of {get_args(Solver)}, got {solver!r}")
     if isinstance(start_level, bool) or not isinstance(start_level, (int, np.integer)) or not (
             0 <= start_level < problem.num_levels):
         raise ValueError(f"start_level must be an int in 0..{problem.num_levels - 1} (an index into the "
