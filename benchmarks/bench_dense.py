@@ -1,4 +1,4 @@
-"""Dense map-to-map alignment (registration/dense.py): timing and accuracy vs ICP.
+"""Dense map-to-map alignment (registration/_dense/): timing and accuracy vs ICP.
 
 1. Time per L-BFGS iteration and to converge for three map sizes (the synthetic two-robot room
    at 0.4, 0.2 and 0.1 m): first call (compile + run) apart from the median of steady runs.
@@ -10,7 +10,11 @@
    level of ICP's last correspondence distance, from the guess if that fails); and how many rows
    each brings within one voxel and 0.01 rad of the truth.
 
-Run: ``.venv/bin/python benchmarks/bench_dense.py [--quick]`` (``--quick``: one steady repeat).
+3. With ``--solvers`` only: the two minimiser backends (``solver="lbfgs"``, the default, and
+   ``"jaxopt"``) on one small problem: compile apart from steady state, final loss, iterations.
+
+Run: ``.venv/bin/python benchmarks/bench_dense.py [--quick] [--solvers]`` (``--quick``: one steady
+repeat).
 Prints markdown tables."""
 
 from __future__ import annotations
@@ -108,6 +112,31 @@ def timing_table(resolutions, max_points, repeats):
               f"{float(metrics.translation_distance(r.T_1_2, T_TRUE)):.3f} |", flush=True)
 
 
+def solver_table(res, levels, max_points, repeats):
+    """The two minimiser backends (``solver="lbfgs"`` / ``"jaxopt"``) on one problem: one guess,
+    then four guesses in one ``vmap``."""
+    print(f"\n## Minimiser backends (res {res} m, levels {levels}, {max_points} points, maxiter 20; "
+          "one guess 0.36 m / 0.1 rad off, then 4 guesses in one vmap)\n")
+    print("| solver | guesses | compile+1st [s] | steady [s] | loss | iterations per level | status |")
+    print("|---|---|---|---|---|---|---|")
+    m1, m2 = room_maps(res)
+    problem = dense.prepare_alignment(m1, m2, levels=levels, max_points=max_points)
+    errors = [(0.3, -0.2, 0.0, 0.0, 0.0, 0.1), (0.1, 0.2, 0.0, 0.0, 0.0, -0.1), (0.2, 0.0, 0.1, 0.05, 0.0, 0.0),
+              (-0.2, 0.1, 0.0, 0.0, 0.0, 0.15)]
+    T0 = np.stack([guess(e) for e in errors])
+    ends = []
+    for solver in ("lbfgs", "jaxopt"):
+        for T in (T0[0], T0):
+            r, first, steady = timed(lambda: dense.solve_alignment(problem, T, maxiter=20, solver=solver), repeats)
+            if T.ndim == 2:
+                ends.append(r.T_1_2)
+            print(f"| {solver} | {1 if T.ndim == 2 else len(T)} | {first:.1f} | {steady:.3f} | "
+                  f"{np.round(np.asarray(r.loss, np.float64), 5).tolist()} | {np.asarray(r.iterations).tolist()} | "
+                  f"{np.asarray(r.status).tolist()} |", flush=True)
+    print(f"\none guess: the two backends' ends differ by {float(metrics.translation_distance(*ends)):.4f} m "
+          f"and {float(metrics.rotation_angle_error(*ends)):.4f} rad")
+
+
 def _orthonormal(T):
     """float32 results -> float64 rigid transforms (host rigidity checks)."""
     T = np.array(T, np.float64)
@@ -140,7 +169,7 @@ def accuracy_table(res, max_points):
     print(f"\n## Table 7.1-style grid at res {res} m (synthetic two-robot room, map 2 yawed pi/4)\n")
     print("Each cell: rotation-angle error [rad] / translation distance [m] to the truth, then the "
           "status (ICP: 0 converged, 1 max iterations, 2 too few inliers; dense: 0 converged, "
-          "1 max iterations, 2 poor agreement, 3 low overlap, 4 not finite). "
+          "1 max iterations, 3 poor agreement, 4 low overlap, 5 not finite: registration.Status). "
           "'*' = within one voxel and 0.01 rad.\n")
     m1, m2 = room_maps(res)
     T_inits = np.stack([thesis_guess(t, rpy) for t, rpy in TABLE_7_1])
@@ -209,9 +238,14 @@ def main():
     ap.add_argument("--grid-res", type=float, default=0.2)
     ap.add_argument("--max-points", type=int, default=8192)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--solvers", action="store_true",
+                    help="only compare the minimiser backends (lbfgs vs jaxopt) on one small problem")
     args = ap.parse_args()
     print(f"# bench_dense  jax {jax.__version__}  {platform.processor() or platform.machine()}  "
           f"devices {jax.devices()}  load {os.getloadavg()[0]:.1f}")
+    if args.solvers:
+        solver_table(0.2, (1, 0), 2048, 1 if args.quick else args.repeats)
+        return
     timing_table((0.4, 0.2, 0.1), args.max_points, 1 if args.quick else args.repeats)
     accuracy_table(args.grid_res, args.max_points)
 

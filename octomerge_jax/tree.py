@@ -455,3 +455,49 @@ def from_voxels(centers, log_odds, resolution: float, depth: int = _D,
         return m
     pruned = prune(m)
     return pruned.with_capacity(bucket_capacity(pruned.num_leaves))
+
+
+# --- added for dense: coarsening (the alignment pyramid and the correlation grids)
+
+from .map import from_leaves  # noqa: E402
+
+__all__ += ["coarsen"]
+
+
+def coarsen(m: OccupancyMap, k: int, capacity: int | None = None, *,
+            resolution: float | None = None) -> OccupancyMap:
+    """Map ``m`` coarsened by ``2^k`` per axis and relabelled as a map of resolution
+    ``res * 2^k``: a leaf finer than ``2^k`` voxels goes to the coarse cell containing it
+    (cells take the maximum log-odds of their known children, OctoMap's inner-node rule); a
+    coarser leaf keeps its extent (depth ``d -> d + k``). Centres keep their metric positions
+    (cell ``i`` of the coarse map covers exactly ``2^k`` voxels ``i * 2^k ...``). With
+    ``resolution`` given, the result is labelled with it instead (the dense alignment stores
+    every level at the finest resolution and scales the sample points). ``capacity``: of the
+    result (default ``bucket_capacity`` of its leaves). Host function.
+
+    Raises ``ValueError`` for ``k`` outside 0..15 or a depth-0 (root) leaf with ``k > 0``.
+    """
+    k = int(k)
+    if not 0 <= k < _D:
+        raise ValueError(f"k (coarsening level) must lie in 0..15, got {k}")
+    if k == 0:
+        return m if capacity is None else m.with_capacity(capacity)
+    lv = m.leaves()
+    if lv.depths.size and lv.depths.min() < 1:
+        raise ValueError("coarsen: a depth-0 (root) leaf cannot be relabelled; expand it first")
+    keys = lv.keys.astype(np.int64) - morton.KEY_OFFSET
+    new_keys = (keys >> k) + morton.KEY_OFFSET  # floor division: exact for coarse leaves
+    new_depth = np.minimum(lv.depths + k, _D)
+    codes = morton.keys_to_codes(new_keys.astype(np.uint64))
+    span = np.uint64(1) << (np.uint64(3) * (_D - new_depth).astype(np.uint64))
+    codes = codes & ~(span - np.uint64(1))
+    order = np.lexsort((new_depth, codes))
+    codes, new_depth, lo = codes[order], new_depth[order], lv.log_odds[order]
+    first = np.ones(codes.shape, bool)
+    first[1:] = codes[1:] != codes[:-1]
+    seg = np.cumsum(first) - 1
+    n = int(first.sum())
+    val = np.full(n, -np.inf, np.float32)
+    np.maximum.at(val, seg, lo)
+    res = m.resolution * 2.0 ** k if resolution is None else resolution
+    return from_leaves(codes[first], new_depth[first], val, res, m.params, capacity=capacity)

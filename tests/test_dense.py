@@ -1,7 +1,7 @@
-"""Tests for dense map-to-map alignment and transform tuning (registration/dense.py).
+"""Tests for dense map-to-map alignment and transform tuning (registration/_dense/).
 
 The maps are built with ``tree.from_voxels`` from the shared synthetic room
-(``registration/_testing.py``): occupied voxels on its surfaces, free voxels in its interior,
+(``octomerge_jax.sim``): occupied voxels on its surfaces, free voxels in its interior,
 each robot seeing a crop, map 2 built in a frame rotated by pi/4 (like thesis §7.1). The
 simulator (``octomerge_jax.sim``) ray casts far too slowly for a < 60 s test budget on 2 cores.
 """
@@ -16,8 +16,10 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from octomerge_jax import tree
-from octomerge_jax.registration import dense, metrics
+from octomerge_jax import se3, tree
+from octomerge_jax.registration import Status, dense, metrics
+from octomerge_jax.registration._dense import _solve as dense_solve
+from octomerge_jax.registration._dense._lbfgs import minimize
 from octomerge_jax.sim import surface_samples
 from helpers import xyz_rpy64
 
@@ -68,15 +70,15 @@ def perturbed(x, y, z, roll, pitch, yaw, T=T_TRUE):
 
 def test_se3_exp_matches_rotation_and_is_nan_free_at_zero():
     w = np.array([0.3, -0.2, 0.5])
-    T = dense._se3_exp(jnp.asarray(np.r_[0.1, 0.2, -0.3, w], jnp.float32))
+    T = se3.se3_exp(jnp.asarray(np.r_[0.1, 0.2, -0.3, w], jnp.float32))
     th = np.linalg.norm(w)
     K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / th
     R = np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
     np.testing.assert_allclose(np.asarray(T[:3, :3]), R, atol=1e-6)
-    g = jax.jit(jax.jacfwd(dense._se3_exp))(jnp.zeros(6, jnp.float32))
+    g = jax.jit(jax.jacfwd(se3.se3_exp))(jnp.zeros(6, jnp.float32))
     assert np.all(np.isfinite(np.asarray(g)))
-    small = dense._se3_exp(jnp.asarray([0, 0, 0, 0.0999, 0, 0], jnp.float32))
-    big = dense._se3_exp(jnp.asarray([0, 0, 0, 0.1001, 0, 0], jnp.float32))
+    small = se3.se3_exp(jnp.asarray([0, 0, 0, 0.0999, 0, 0], jnp.float32))
+    big = se3.se3_exp(jnp.asarray([0, 0, 0, 0.1001, 0, 0], jnp.float32))
     assert float(jnp.abs(small - big).max()) < 5e-4  # branches agree at the switch
 
 
@@ -84,7 +86,7 @@ def test_coarsen_keeps_metric_positions_and_takes_max():
     res = 0.1
     c = np.array([[0.05, 0.05, 0.05], [0.15, 0.05, 0.05], [1.05, 0.05, 0.05]])
     m = tree.from_voxels(c, np.array([-1.0, 2.0, -0.5], np.float32), res, prune_result=False)
-    mc = dense.coarsen(m, 1)
+    mc = tree.coarsen(m, 1)
     lv = mc.leaves()
     assert mc.resolution == pytest.approx(0.2)
     np.testing.assert_allclose(lv.centers, [[0.1, 0.1, 0.1], [1.1, 0.1, 0.1]], atol=1e-9)
@@ -162,7 +164,7 @@ def test_align_dense_recovers_thesis_errors(batch_result):
         rot = float(metrics.rotation_angle_error(r.T_1_2[i], T_TRUE))
         tr = float(metrics.translation_distance(r.T_1_2[i], T_TRUE))
         # accurate, and not a failure status (1 = still creeping at maxiter is allowed)
-        assert int(r.status[i]) in (dense.STATUS_CONVERGED, dense.STATUS_MAX_ITERATIONS), (e, int(r.status[i]))
+        assert int(r.status[i]) in (Status.CONVERGED, Status.MAX_ITERATIONS), (e, int(r.status[i]))
         assert rot < 0.01 and tr < RES, (e, rot, tr, int(r.status[i]))
         hist = np.asarray(r.loss_history[i, -1])
         hist = hist[np.isfinite(hist)]
@@ -171,7 +173,7 @@ def test_align_dense_recovers_thesis_errors(batch_result):
 
 def test_hopeless_start_reports_failure(batch_result):
     i = len(GOOD)
-    assert int(batch_result.status[i]) in (dense.STATUS_POOR_AGREEMENT, dense.STATUS_LOW_OVERLAP)
+    assert int(batch_result.status[i]) in (Status.POOR_AGREEMENT, Status.LOW_OVERLAP)
     assert not bool(batch_result.converged[i])
 
 
@@ -182,9 +184,9 @@ def test_no_recompilation_within_bucket(pair):
     a = dense.prepare_alignment(m1, m2, seed=0, **opts)
     b = dense.prepare_alignment(m1, m2, seed=1, **opts)  # other points, same bucket
     jax.block_until_ready(dense.solve_alignment(a, T_inits, maxiter=5))
-    before = dense._solve_many_jit._cache_size()
+    before = dense_solve._solve_many_jit._cache_size()
     jax.block_until_ready(dense.solve_alignment(b, T_inits[::-1], maxiter=5, min_agreement=0.7))
-    assert dense._solve_many_jit._cache_size() == before
+    assert dense_solve._solve_many_jit._cache_size() == before
 
 
 def test_host_errors_name_the_argument(pair, problem):
@@ -209,10 +211,8 @@ def test_host_errors_name_the_argument(pair, problem):
 
 
 def test_minimize_converges_and_vmaps():
-    """The hand-written L-BFGS (_solver.minimize) on an ill-conditioned quadratic and on
+    """The hand-written L-BFGS (``_lbfgs.minimize``) on an ill-conditioned quadratic and on
     Rosenbrock, batched: reaches the minimum, converged, monotone history."""
-    from octomerge_jax.registration import _solver
-
     A = jnp.diag(jnp.asarray([1.0, 10.0, 100.0], jnp.float32))
 
     def f(x, a):
@@ -220,8 +220,8 @@ def test_minimize_converges_and_vmaps():
         rosen = 100.0 * (x[1] - x[0] ** 2) ** 2 + (1.0 - x[0]) ** 2
         return jnp.where(a > 0, rosen, q)
 
-    run = jax.jit(jax.vmap(lambda x0, a: _solver.minimize(f, x0, a, maxiter=200, tol=1e-4,
-                                                          xtol=1e-7, init_step=0.1)))
+    run = jax.jit(jax.vmap(lambda x0, a: minimize(f, x0, a, maxiter=200, tol=1e-4,
+                                                  xtol=1e-7, init_step=0.1)))
     x0 = jnp.asarray([[1.0, 1.0, 1.0], [-1.2, 1.0, 0.0]], jnp.float32)
     r = run(x0, jnp.asarray([0.0, 1.0]))
     np.testing.assert_allclose(np.asarray(r.x[0]), 0.0, atol=1e-3)
@@ -230,6 +230,24 @@ def test_minimize_converges_and_vmaps():
     for h in np.asarray(r.history):
         h = h[np.isfinite(h)]
         assert np.all(np.diff(h) <= 1e-6)
+
+
+def test_jaxopt_backend_reaches_the_default_backends_transform(pair):
+    """``solver="jaxopt"`` (jaxopt's LBFGS on the same loss and levels) ends within a voxel and
+    0.01 rad of the default backend's transform, with the same result type and a usable status;
+    an unknown solver name the argument."""
+    m1, m2, _ = pair
+    problem = dense.prepare_alignment(m1, m2, levels=(1, 0), max_points=1024)
+    T0 = perturbed(0.3, -0.2, 0.0, 0.0, 0.0, 0.1)
+    ref = dense.solve_alignment(problem, T0, maxiter=MAXITER)
+    r = dense.align_dense(m1, m2, T0, levels=(1, 0), max_points=1024, maxiter=MAXITER, solver="jaxopt")
+    assert type(r) is type(ref) and r.loss_history.shape == ref.loss_history.shape
+    assert Status(int(r.status)).usable and Status(int(ref.status)).usable, (int(r.status), int(ref.status))
+    assert float(metrics.translation_distance(r.T_1_2, ref.T_1_2)) < RES
+    assert float(metrics.rotation_angle_error(r.T_1_2, ref.T_1_2)) < 0.01
+    assert abs(float(r.loss) - float(ref.loss)) < 0.01 and np.all(np.asarray(r.iterations) > 0)
+    with pytest.raises(ValueError, match="solver"):
+        dense.solve_alignment(problem, T0, solver="bfgs")
 
 
 # ----------------------------------------------------------------------------- tuning API
@@ -392,7 +410,7 @@ def test_coarse_levels_that_end_worse_than_the_start_are_dropped(pair):
     batched = dense.solve_alignment(biased, starts, maxiter=MAXITER)
     for i, T0 in enumerate(starts):
         r = jax.tree_util.tree_map(lambda a: a[i], batched)  # noqa: B023
-        assert bool(r.restarted) and int(r.status) == dense.STATUS_CONVERGED
+        assert bool(r.restarted) and int(r.status) == Status.CONVERGED
         assert float(r.loss) <= float(dense.problem_loss(biased, T0))
         assert metrics.translation_distance(np.asarray(r.T_1_2), T_TRUE) < RES / 2
         assert int(r.num_iterations) > int(r.iterations.sum())  # the dropped path's iterations count too

@@ -3,10 +3,11 @@ overlap extraction, jitted/differentiable point-to-point ICP, rendezvous initial
 error metrics and rigid-transform helpers."""
 
 from .correlation import CorrelationResult, correlation_search
-from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result,
-                    default_levels, fused_log_odds, pose_from_increment, prepare_alignment,
-                    problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
-                    transformed_occupancy)
+from . import dense
+from ._dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result,
+                     default_levels, fused_log_odds, level_losses, pose_from_increment, prepare_alignment,
+                     problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
+                     transformed_occupancy)
 from .evaluate import RegistrationStats, evaluate_registration
 from ._icp import (COARSE_MATCHING, IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
                    icp_padded_stack, invert_result, kabsch, pad_points, pad_points_host, sequential_default,
@@ -24,7 +25,7 @@ from ..se3 import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quater
 __all__ = [
     "CorrelationResult", "correlation_search",
     "AlignProblem", "AlignResult", "align_dense", "alignment_loss", "best_result", "default_levels",
-    "fused_log_odds", "pose_from_increment", "prepare_alignment", "problem_loss",
+    "fused_log_odds", "level_losses", "pose_from_increment", "prepare_alignment", "problem_loss",
     "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
     "RegistrationStats", "evaluate_registration", "COARSE_MATCHING", "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded", "icp_padded_stack",
     "invert_result", "kabsch", "pad_points_host", "sequential_default",

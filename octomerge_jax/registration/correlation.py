@@ -19,7 +19,7 @@ free. ``s1`` is map 1's signed occupancy (+1 occupied, -1 free, 0 unknown) and `
 known indicator, both blurred by ``[1/4, 1/2, 1/4]`` per axis (one cell of tolerance for
 surfaces voxelised in two frames). So ``N`` counts agreement (surface on surface, free on
 free) minus disagreement, and ``D`` the commonly known space: the dense loss's normalisation
-(``dense.py``), which keeps a slide into more overlap from scoring better by overlap alone;
+(``registration/_dense/``), which keeps a slide into more overlap from scoring better by overlap alone;
 the ``0.1 W`` keeps a sliver of overlap from scoring as perfect. With points (no map), map 1
 has no free space and ``D`` is ``W``: the score is surface overlap. Unlike ICP, no
 correspondence distance limits where the optimum can lie: the whole translation range of the
@@ -46,6 +46,7 @@ import numpy as np
 
 from .. import morton
 from ..map import OccupancyMap, bucket_capacity
+from ..tree import coarsen
 from .. import se3
 
 __all__ = ["CorrelationResult", "correlation_search"]
@@ -73,10 +74,8 @@ def _grid_len(n: int) -> int:
 
 
 def _map_cells(m: OccupancyMap, k: int):
-    """Host: every cell of ``m`` coarsened by ``2^k`` (``dense.coarsen``'s max rule) as
+    """Host: every cell of ``m`` coarsened by ``2^k`` (``tree.coarsen``'s max rule) as
     ``(cell indices (n, 3) int64, occupied (n,) bool)``; cell ``i`` spans ``[i, i + 1) * res 2^k``."""
-    from .dense import coarsen  # dense imports this package's modules; import on use
-
     lv = coarsen(m, k).leaves()
     thr = float(np.asarray(m.params.occupancy_threshold_log_odds))
     cell_codes, leaf = morton.leaf_cell_codes(lv.codes, lv.depths)
