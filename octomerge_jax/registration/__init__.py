@@ -4,7 +4,7 @@ error metrics and rigid-transform helpers."""
 
 from .correlation import CorrelationResult, correlation_search
 from . import dense
-from ._dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result,
+from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result,
                      default_levels, fused_log_odds, level_losses, pose_from_increment, prepare_alignment,
                      problem_loss, score_alignment, solve_alignment, solve_alignment_batch, stack_problems,
                      transformed_occupancy)

@@ -19,7 +19,7 @@ free. ``s1`` is map 1's signed occupancy (+1 occupied, -1 free, 0 unknown) and `
 known indicator, both blurred by ``[1/4, 1/2, 1/4]`` per axis (one cell of tolerance for
 surfaces voxelised in two frames). So ``N`` counts agreement (surface on surface, free on
 free) minus disagreement, and ``D`` the commonly known space: the dense loss's normalisation
-(``registration/_dense/``), which keeps a slide into more overlap from scoring better by overlap alone;
+(``registration/dense/``), which keeps a slide into more overlap from scoring better by overlap alone;
 the ``0.1 W`` keeps a sliver of overlap from scoring as perfect. With points (no map), map 1
 has no free space and ``D`` is ``W``: the score is surface overlap. Unlike ICP, no
 correspondence distance limits where the optimum can lie: the whole translation range of the
