@@ -1,4 +1,4 @@
-"""Tests for dense map-to-map alignment and transform tuning (registration/_dense/).
+"""Tests for dense map-to-map alignment and transform tuning (registration/dense/).
 
 The maps are built with ``tree.from_voxels`` from the shared synthetic room
 (``octomerge_jax.sim``): occupied voxels on its surfaces, free voxels in its interior,
@@ -18,8 +18,8 @@ from jax.test_util import check_grads
 
 from octomerge_jax import se3, tree
 from octomerge_jax.registration import Status, dense, metrics
-from octomerge_jax.registration._dense import _solve as dense_solve
-from octomerge_jax.registration._dense._lbfgs import minimize
+from octomerge_jax.registration.dense import _solve as dense_solve
+from octomerge_jax.registration.dense._lbfgs import minimize
 from octomerge_jax.sim import surface_samples
 from helpers import xyz_rpy64
 
