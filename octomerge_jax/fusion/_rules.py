@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-RULES = ("sum", "max", "weighted")
+from ..types import RULES
 
 # ``mode`` (a traced int32) per rule: 0 sum, 1 max, 2 weighted; "sum" runs as "weighted"
 # with weights 1, which is exact in IEEE arithmetic.

@@ -17,6 +17,7 @@ import numpy as np
 
 from .. import morton, tree
 from ..map import OccupancyMap
+from ..types import METHODS, SPACES
 
 __all__ = [
     "METHODS",
@@ -29,8 +30,6 @@ __all__ = [
     "sample",
 ]
 
-METHODS = ("trilinear", "nearest", "thesis")
-SPACES = ("probability", "log_odds")
 
 KEY_MAX = 2 * morton.KEY_OFFSET  # finest keys lie in [0, KEY_MAX) per axis
 

@@ -16,11 +16,11 @@ import jax
 import jax.numpy as jnp
 
 from .. import neighbors
+from ...types import COARSE_MATCHING_CHOICES as COARSE_MATCHING
 
 __all__ = ["COARSE_MATCHING", "check_coarse_matching", "COARSE_EVERY", "COARSE_MIN_QUERIES", "Queries", "voxel_downsample", "coarse_rows", "every_kth",
            "coarse_clouds", "coarse_cloud", "QueryClouds", "query_clouds"]
 
-COARSE_MATCHING = ("centroid", "nearest", "symmetric")  # the choices of ``coarse_matching``
 # coarse stages query every k-th source point, k <= COARSE_EVERY, keeping at least one query
 # block (neighbors.QUERY_BLOCK): fewer would not save a block
 COARSE_EVERY, COARSE_MIN_QUERIES = 4, 2048
