@@ -70,7 +70,7 @@ class MergeReport:
     - ``refine``: ``"icp"``, ``"multi"``, ``"dense"``, ``"icp+dense"`` or ``"none"``.
     - ``icp``: the ICP result as a dict (``converged``, ``status``, ``num_iterations``,
       ``num_inliers``, ``rmse`` [m], ``fitness``, ``correspondence_distance`` [m], ...; for
-      ``"dense"`` the same keys for the dense alignment (status names ``DENSE_STATUS_NAMES``,
+      ``"dense"`` the same keys for the dense alignment (status names ``str(Status)``,
       the point statistics measured at its transform by ``point_stats``) and its own figures
       under ``dense`` (for ``"icp+dense"``: ICP's fields, and under ``dense`` the dense
       alignment's with the point statistics at the transform used; ``start_level``, the index
