@@ -184,13 +184,14 @@ def accuracy_table(res, max_points):
     id_res = jax.block_until_ready(solve_alignment(problem, T_icp))
     t_both = time.perf_counter() - t0
     T_d, T_id = _orthonormal(d_res.T_1_2), _orthonormal(id_res.T_1_2)
-    # the pipeline's refine="icp+dense" (refine.register): dense from ICP's result from the level of
+    # the pipeline's refine="icp+dense" (pipeline.register): dense from ICP's result from the level of
     # ICP's last correspondence distance, then from the guess if that fails, else ICP's result kept
     cfg = MergeConfig().replace(registration={"refine": "icp+dense"})
     t0 = time.perf_counter()
     T_pipe, st_pipe = [], []
     for T0 in T_inits:
-        T, info = register(m1, m2, T0, cfg, {}, [])[:2]
+        registration = register(m1, m2, T0, cfg)
+        T, info = registration.T_1_2, registration.info
         T_pipe.append(np.asarray(T, np.float64))
         st_pipe.append(int(info["dense"]["status"]))
     t_pipe = time.perf_counter() - t0

@@ -27,7 +27,7 @@ import functools
 
 import numpy as np
 
-from octomerge_jax.config import COARSE_MATCHING_CHOICES
+from octomerge_jax.types import COARSE_MATCHING_CHOICES
 from octomerge_jax.registration import icp, icp_multi, metrics, overlap, pad_points
 from octomerge_jax.sim import scene_pair
 from octomerge_jax import se3

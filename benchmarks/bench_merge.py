@@ -137,7 +137,7 @@ def bench_sizes(resolutions, repeats):
 
 
 def bench_batch(res, n_pairs):
-    from octomerge_jax.batch import merge_batch
+    from octomerge_jax.pipeline import merge_batch
     from octomerge_jax.pipeline import merge
 
     m1, m2, T = make_pair(res)
@@ -215,7 +215,7 @@ GUESS_GRID = ([(yaw, 0.0, 0.0, (0.3, 0.2, 0.0)) for yaw in (0.5, 1.7, -2.6, 3.0,
 
 
 def bench_guess_grid(res, hypotheses):
-    from octomerge_jax.config import MergeConfig
+    from octomerge_jax.pipeline import MergeConfig
     from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
     from octomerge_jax.sim import make_two_robot_maps
 

@@ -115,8 +115,7 @@ def load_demo(folder):
 
 def run_scene(scene, variants, rows, resolution, spacing, seed, from_demo=None):
     from octomerge_jax import registration as reg
-    from octomerge_jax.config import MergeConfig
-    from octomerge_jax.pipeline import MergeError, register
+    from octomerge_jax.pipeline import MergeConfig, MergeError, register
     from octomerge_jax.sim import make_two_robot_maps
 
     title, table = TABLES[scene]
@@ -147,7 +146,8 @@ def run_scene(scene, variants, rows, resolution, spacing, seed, from_demo=None):
             cfg = MergeConfig().replace(registration={"overlap": overlap, "refine": refine})
             t1 = time.perf_counter()
             try:
-                T, info, *_ = register(m1, m2, G, cfg, {}, [])
+                registration = register(m1, m2, G, cfg)
+                T, info = registration.T_1_2, registration.info
                 e_r, e_t = float(reg.rotation_error(T, T_true)), float(reg.translation_error(T, T_true))
                 ok = e_r < 0.25 and e_t < 0.9
                 mark = "" if ok else " ✗"

@@ -7,15 +7,13 @@ fusion across depths and differentiable ICP.
 
 from importlib.metadata import PackageNotFoundError, version as _version
 
-from .batch import BatchResult, merge_batch
-from .config import MergeConfig, load_config
 from .examples import example_map
 from .fusion import FuseReport, fuse, fuse_many
 from .hostmem import reuse_host_memory
 from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
 from .insert import CapacityPlan, insert_point_cloud, insert_point_clouds
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
-from .pipeline import MergeError, MergeReport, merge, merge_many
+from .pipeline import BatchResult, MergeConfig, MergeError, MergeReport, load_config, merge, merge_batch, merge_many
 from .registration import (
     AlignResult,
     align_dense,

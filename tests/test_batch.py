@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 
 from octomerge_jax import tree
-from octomerge_jax.batch import merge_batch
 from octomerge_jax.cli.manifest import read_manifest, run_manifest
 from octomerge_jax.io import load, save
-from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
+from octomerge_jax.pipeline import merge, merge_batch, transform_from_xyz_rpy
 
 from test_pipeline import T_TRUE, perturbed, robot_map, small_pair
 
@@ -76,6 +75,8 @@ def _summary(out_dir):
 
 
 def test_manifest_in_process_resumable(manifest, capsys):
+    from octomerge_jax.cli.manifest import read_manifest, run_manifest  # moving there with the manifest runner
+
     d, path = manifest
     out = d / "out_local"
     rows = run_manifest(path, out, progress=True)
@@ -93,6 +94,8 @@ def test_manifest_in_process_resumable(manifest, capsys):
 
 
 def test_manifest_errors(tmp_path):
+    from octomerge_jax.cli.manifest import read_manifest, run_manifest  # moving there with the manifest runner
+
     p = tmp_path / "m.csv"
     p.write_text("map1,map2\na.bt,b.bt\n")
     with pytest.raises(ValueError, match="missing column"):
@@ -106,6 +109,8 @@ def test_manifest_errors(tmp_path):
 
 
 def test_manifest_on_dask_local_cluster(manifest):
+    from octomerge_jax.cli.manifest import read_manifest, run_manifest  # moving there with the manifest runner
+
     distributed = pytest.importorskip("distributed")
     d, path = manifest
     out = d / "out_dask"

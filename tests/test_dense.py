@@ -349,7 +349,7 @@ def test_map_agreement_prefers_candidates_that_pass_the_dense_status_checks(monk
 def test_merge_multi_recovers_a_1_7_rad_yaw_error():
     """Table 7.2 row 7 (1.7 rad), failed by the thesis: ``icp_multi`` alone picks the room turned
     by pi (``test_registration_icp``), re-ranking its candidates by map agreement does not."""
-    from octomerge_jax.config import MergeConfig
+    from octomerge_jax.pipeline import MergeConfig
     from octomerge_jax.pipeline import merge
 
     m1, m2, T = room_maps(crop_1=(-1.0, 11.5), crop_2=(0.5, 13.0))

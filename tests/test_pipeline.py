@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 from octomerge_jax import morton, tree
-from octomerge_jax.config import (COARSE_MATCHING_CHOICES, MergeConfig, config_from_dict, dumps_toml,
-                                  load_config, save_config)
+from octomerge_jax.pipeline import (COARSE_MATCHING_CHOICES, MergeConfig, config_from_dict, dumps_toml,
+                                    load_config, save_config)
 from octomerge_jax.fusion import fuse
 from octomerge_jax.map import from_leaves
 from octomerge_jax.registration import COARSE_MATCHING
@@ -325,7 +325,7 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
     """refine="icp+dense": a dense failure from ICP's result (ICP in a wrong basin) retries dense
     from the initial guess; if that fails too, ICP's transform is kept and both failures are
     reported. (The dense solver is stubbed: this checks the pipeline's fallback logic.)"""
-    import octomerge_jax.refine as refine_mod
+    import octomerge_jax.pipeline.refine as refine_mod
 
     m1, m2, T = small_pair()
     guess = perturbed()
@@ -346,7 +346,7 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
             return np.asarray(T_start, np.float64), info, None
         return run
 
-    monkeypatch.setattr(refine_mod, "_refine_dense", fake_dense([2, 0]))
+    monkeypatch.setattr(refine_mod, "refine_dense", fake_dense([2, 0]))
     _, rep = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T)
     assert len(starts) == 2
     np.testing.assert_allclose(starts[1], guess)  # second start: the initial guess
@@ -357,7 +357,7 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
     assert rep.icp["dense"]["status"] == 0 and "initial guess" in rep.icp["dense"]["started_from"]
 
     starts.clear()
-    monkeypatch.setattr(refine_mod, "_refine_dense", fake_dense([2, 3]))
+    monkeypatch.setattr(refine_mod, "refine_dense", fake_dense([2, 3]))
     _, rep2 = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T)
     assert len(starts) == 2
     np.testing.assert_allclose(rep2.T_1_2, starts[0], atol=1e-5)  # ICP's transform kept
@@ -366,15 +366,15 @@ def test_icp_plus_dense_retries_dense_from_the_initial_guess(monkeypatch):
 
 @lru_cache(maxsize=None)
 def _local_step_inputs():
-    """``(m1, T, cfg, p1, p2, problem, icp kwargs)`` for ``_refine_multi_locally`` on the small pair."""
+    """``(m1, T, cfg, p1, p2, problem, icp kwargs)`` for ``local_step`` on the small pair."""
     from octomerge_jax import registration as reg
-    from octomerge_jax.refine import _icp_kwargs
+    from octomerge_jax.pipeline.clouds import icp_kwargs
 
     m1, m2, T = small_pair()
     cfg = MergeConfig()
     p1 = np.asarray(reg.occupied_points(m1), np.float32)
     p2 = np.asarray(reg.occupied_points(m2), np.float32)
-    return m1, T, cfg, p1, p2, reg.prepare_alignment(m1, m2), _icp_kwargs(cfg, m1.resolution)
+    return m1, T, cfg, p1, p2, reg.prepare_alignment(m1, m2), icp_kwargs(cfg, m1.resolution)
 
 
 def test_multi_local_step_refines_a_biased_pick_and_is_guarded():
@@ -382,19 +382,20 @@ def test_multi_local_step_refines_a_biased_pick_and_is_guarded():
     picked (the thesis's local step): from a pick 0.06 rad / 0.2 m off, as whole-cloud ICP
     leaves them on partially overlapping maps, it lands near the truth with a lower map loss
     and is used; from the truth itself it may not lower the loss, and is then not used."""
-    from octomerge_jax.refine import _refine_multi_locally
+    from octomerge_jax.pipeline.ranking import local_step
+    from octomerge_jax.pipeline.timings import Timings
     from octomerge_jax.registration import metrics
 
     m1, T, cfg, p1, p2, problem, kw = _local_step_inputs()
     biased = transform_from_xyz_rpy(0.15, -0.12, 0.0, 0.0, 0.0, 0.06) @ T
-    local, info = _refine_multi_locally(p1, p2, _pick(biased), problem, cfg, m1.resolution, kw, {})
+    local, info = local_step(p1, p2, _pick(biased), problem, cfg, m1.resolution, kw, Timings())
     assert info["used"] and local is not None, info
     assert info["map_loss_local"] < info["map_loss_pick"]
     T_local = np.asarray(local.T_target_source, np.float64)
     assert float(metrics.rotation_angle_error(T_local, T)) < 0.03
     assert float(metrics.translation_distance(T_local, T)) < 2 * m1.resolution
     assert float(metrics.rotation_angle_error(biased, T)) > 0.05  # the pick was off
-    local2, info2 = _refine_multi_locally(p1, p2, _pick(T), problem, cfg, m1.resolution, kw, {})
+    local2, info2 = local_step(p1, p2, _pick(T), problem, cfg, m1.resolution, kw, Timings())
     assert info2["used"] == (info2["map_loss_local"] < info2["map_loss_pick"])
     assert (local2 is not None) == info2["used"]
 
@@ -403,28 +404,26 @@ def test_multi_local_step_falls_back_to_the_dense_alignment(monkeypatch):
     """When neither the pick nor its local ICP result passes the dense status checks (a tilted
     pick that ICP does not fix: ICP stubbed to return its start), the dense alignment from it
     is used if its result passes them; a pick that passes them is left to ICP alone."""
-    import importlib
-
     from octomerge_jax import registration as reg
-    from octomerge_jax.refine import _refine_multi_locally, _scores_and_plausible
+    from octomerge_jax.pipeline.ranking import local_step, scores_and_plausible
+    from octomerge_jax.pipeline.timings import Timings
     from octomerge_jax.registration import metrics
 
-    refine = importlib.import_module("octomerge_jax.refine")
     m1, T, cfg, p1, p2, problem, kw = _local_step_inputs()
     real_icp = reg.icp
     stalled = lambda q2, q1, T0, **k: dataclasses.replace(real_icp(q2, q1, T0, **k),  # noqa: E731
                                                           T_target_source=np.asarray(T0, np.float32))
-    monkeypatch.setattr(refine._reg(), "icp", stalled)
+    monkeypatch.setattr(reg, "icp", stalled)
     tilted = transform_from_xyz_rpy(0.12, -0.08, 0.05, 0.12, -0.08, 0.0) @ T
-    _, ok = _scores_and_plausible(problem, np.stack([tilted, T]))
+    _, ok = scores_and_plausible(problem, np.stack([tilted, T]))
     assert not ok[0] and ok[1]  # the tilted pick fails the checks, the truth passes them
-    timings = {}
-    out, info = _refine_multi_locally(p1, p2, _pick(tilted), problem, cfg, m1.resolution, kw, timings)
+    timings = Timings()
+    out, info = local_step(p1, p2, _pick(tilted), problem, cfg, m1.resolution, kw, timings)
     assert info["used"] and info["dense"]["used"] and "dense_local" in timings, info
     T_out = np.asarray(out.T_target_source, np.float64)
     assert float(metrics.rotation_angle_error(T_out, T)) < 0.02
     assert float(metrics.translation_distance(T_out, T)) < m1.resolution
-    out2, info2 = _refine_multi_locally(p1, p2, _pick(T), problem, cfg, m1.resolution, kw, {})
+    out2, info2 = local_step(p1, p2, _pick(T), problem, cfg, m1.resolution, kw, Timings())
     assert "dense" not in info2 and out2 is None  # plausible already: no dense step
 
 
@@ -447,7 +446,7 @@ def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():
     voxel (0.023 m measured). Run from the coarsest level it had carried ICP's result 0.33 m /
     0.07 rad off (the 0.8 and 0.4 m levels prefer that pose)."""
     from octomerge_jax.cli.demo import perturbed_guess
-    from octomerge_jax.config import DemoConfig
+    from octomerge_jax.pipeline import DemoConfig
     from octomerge_jax.sim import make_two_robot_maps
 
     d = DemoConfig()

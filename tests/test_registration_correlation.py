@@ -18,9 +18,8 @@ import pytest
 
 from octomerge_jax import registration as reg
 from octomerge_jax import tree
-from octomerge_jax.batch import merge_batch
-from octomerge_jax.config import MergeConfig
-from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
+from octomerge_jax.pipeline import MergeConfig, merge, merge_batch, transform_from_xyz_rpy
+from octomerge_jax.pipeline.timings import Timings
 from octomerge_jax.registration.correlation import _grid_len
 from octomerge_jax.resample import transform_map
 
@@ -186,7 +185,7 @@ def test_both_sources_take_the_far_pick_only_by_the_margin(monkeypatch, loss_nea
     grid's -0.19 / 0.89 after its local step); else the correlation (far) pick wins only
     when its map loss is lower by more than far_margin (3 %) of the near one's (the hall:
     -0.304 vs -0.291, far; the simulated lab: a wrong pose -0.276 vs -0.271)."""
-    pl = importlib.import_module("octomerge_jax.refine")
+    from octomerge_jax.pipeline import ranking as pl
 
     class Pose:
         def __init__(self, i):
@@ -197,20 +196,20 @@ def test_both_sources_take_the_far_pick_only_by_the_margin(monkeypatch, loss_nea
             self.best, self.best_index = Pose(i), np.int32(i)
 
     losses = np.asarray([loss_near, 0.0, loss_far, 0.0])
-    monkeypatch.setattr(pl._reg(), "prepare_alignment", lambda m1, m2: None)
+    monkeypatch.setattr(reg, "prepare_alignment", lambda m1, m2: None)
 
     def rank(m1, m2, result, *, problem=None, among=None):
         i = int(np.argmin(np.where(among, losses, np.inf)))
         return Picked(i), losses
 
     monkeypatch.setattr(pl, "rank_by_map_agreement", rank)
-    monkeypatch.setattr(pl, "_scores_and_plausible", lambda problem, ids: (
+    monkeypatch.setattr(pl, "scores_and_plausible", lambda problem, ids: (
         losses[list(ids)], np.asarray([plausible[i // 2] for i in ids])))
-    monkeypatch.setattr(pl, "_refine_multi_locally",
+    monkeypatch.setattr(pl, "local_step",
                         lambda p1, p2, pick, *a: (f"local from {pick.T_target_source}", {"used": False}))
     near = np.asarray([True, True, False, False])
     m = types.SimpleNamespace(resolution=RES)
-    r, _, local, info = pl._rank_and_refine(m, m, None, None, None, near, MergeConfig(), {}, {})
+    r, _, local, info = pl.rank_and_refine(m, m, None, None, None, near, MergeConfig(), {}, Timings())
     assert info["chosen"] == chosen
     assert int(r.best_index) == (2 if chosen == "far" else 0) and local == f"local from {r.best_index}"
     assert info["loss_near"] == pytest.approx(loss_near) and info["loss_far"] == pytest.approx(loss_far)
@@ -237,7 +236,8 @@ def test_cli_flag_selects_the_hypotheses():
 def test_local_candidates_keep_one_row_per_pose_and_mark_poses_without_overlap():
     """A correlation pose with too little common space keeps its row (status too few inliers,
     so ranking cannot pick it): rows stay aligned with the hypotheses they came from."""
-    from octomerge_jax.refine import _icp_kwargs, _local_candidates
+    from octomerge_jax.pipeline.candidates import local_candidates
+    from octomerge_jax.pipeline.clouds import icp_kwargs
 
     m1, m2 = pair()
     p1 = np.asarray(reg.occupied_points(m1), np.float32)
@@ -245,7 +245,7 @@ def test_local_candidates_keep_one_row_per_pose_and_mark_poses_without_overlap()
     far = T_TRUE.copy()
     far[:3, 3] += (200.0, 0.0, 0.0)
     cfg = MergeConfig()
-    r = _local_candidates(p1, p2, np.stack([far, T_TRUE]), cfg, RES, _icp_kwargs(cfg, RES), {})
+    r = local_candidates(p1, p2, np.stack([far, T_TRUE]), cfg, RES, icp_kwargs(cfg, RES), Timings())
     assert np.asarray(r.candidates.status).tolist()[0] == 2 and int(r.candidates.status[1]) in (0, 1)
     np.testing.assert_allclose(r.candidates.T_target_source[0], far, atol=1e-5)
     assert int(r.best_index) == 1 and r.hypotheses.shape == (2, 4, 4)
@@ -255,14 +255,14 @@ def test_a_tilted_guess_is_also_searched_level():
     """``refine="multi"``'s search turns the guess about +z, keeping its roll and pitch; a guess
     tilted by more than 0.02 rad is also searched level (its yaw and translation kept), for
     z-up maps whose guess carries a tilt error."""
-    from octomerge_jax.refine import _search_tilts
+    from octomerge_jax.pipeline.candidates import search_tilts
 
     flat = transform_from_xyz_rpy(1.0, -2.0, 0.3, 0.0, 0.0, -2.6)
-    (only,) = _search_tilts(flat)
+    (only,) = search_tilts(flat)
     np.testing.assert_array_equal(only, flat)
-    assert len(_search_tilts(transform_from_xyz_rpy(0, 0, 0, 0.01, -0.01, 1.0))) == 1  # 0.014 rad
+    assert len(search_tilts(transform_from_xyz_rpy(0, 0, 0, 0.01, -0.01, 1.0))) == 1  # 0.014 rad
     tilted = transform_from_xyz_rpy(1.0, -2.0, 0.3, 0.05, 0.1, -2.6)
-    same, level = _search_tilts(tilted)
+    same, level = search_tilts(tilted)
     np.testing.assert_array_equal(same, tilted)
     np.testing.assert_allclose(level, flat, atol=1e-12)
     reg.check_rigid(level)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..config import REFINE_CHOICES, MergeConfig, load_config
+from ..pipeline import REFINE_CHOICES, MergeConfig, load_config
 from ._common import CliError
 from .manifest import run_manifest
 

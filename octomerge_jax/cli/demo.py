@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import se3
-from ..config import DEMO_SCENES, REFINE_CHOICES, MergeConfig, load_config
+from ..pipeline import DEMO_SCENES, REFINE_CHOICES, MergeConfig, load_config
 from ..io import save
 from ..pipeline import merge, transform_from_xyz_rpy
 from ._common import CliError

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from .._fileutil import atomic_write_bytes
-from ..config import MergeConfig, config_to_dict, dumps_toml, load_config
+from ..pipeline import MergeConfig, config_to_dict, dumps_toml, load_config
 from ._common import CliError
 
 EPILOG = """examples:

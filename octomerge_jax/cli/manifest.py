@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from .._fileutil import atomic_output, check_not_input
-from ..config import MergeConfig, config_from_dict, config_to_dict
+from ..pipeline import MergeConfig, config_from_dict, config_to_dict
 from ..io import load, save
 from ..pipeline import MergeError, merge, transform_from_xyz_rpy
 from .dask_runner import map_on_dask

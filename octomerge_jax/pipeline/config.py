@@ -25,6 +25,10 @@ import types
 import typing
 from pathlib import Path
 
+from ..types import (COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, ON_NOT_CONVERGED_CHOICES, OVERLAP_CHOICES,
+                     REFINE_CHOICES)
+from .._fileutil import atomic_write_bytes
+
 __all__ = [
     "RegistrationConfig",
     "TransformConfig",
@@ -35,70 +39,53 @@ __all__ = [
     "REFINE_CHOICES",
     "OVERLAP_CHOICES",
     "ON_NOT_CONVERGED_CHOICES",
+    "HYPOTHESES_CHOICES",
+    "DEMO_SCENES",
     "COARSE_MATCHING_CHOICES",
     "config_from_dict",
     "config_to_dict",
     "dumps_toml",
     "load_config",
     "save_config",
+    "validate",
 ]
 
-REFINE_CHOICES = ("icp", "multi", "none", "dense", "icp+dense")
 DEMO_SCENES = ("lab", "office", "campus")
-OVERLAP_CHOICES = ("voxel", "bbox", "none")
-ON_NOT_CONVERGED_CHOICES = ("warn", "error", "use_initial")
-COARSE_MATCHING_CHOICES = ("centroid", "symmetric", "nearest")  # registration.icp.COARSE_MATCHING
-HYPOTHESES_CHOICES = ("yaw_grid", "correlation", "both")
 
 
 @dataclasses.dataclass(frozen=True)
 class RegistrationConfig:
-    """Alg. 1-3: occupied-leaf clouds, commonly mapped subsets, ICP refinement.
+    """Alg. 1-3: occupied-leaf clouds, commonly mapped subsets, refinement of the guess.
 
-    - ``refine``: ``"icp"`` (one ICP from the guess), ``"multi"`` (multi-hypothesis ICP over
-      yaw/roll/pitch perturbations of the guess on the whole clouds, the candidate picked by
-      map agreement, then one ICP on the commonly mapped subsets (``overlap``) from it, kept
-      if it agrees better; for poor guesses) or ``"none"`` (trust the guess).
-    - ``overlap``: ``"bbox"`` (thesis Alg. 2: intersection of bounding boxes; the default,
-      see below), ``"voxel"`` (points near the other map's points under the guess) or
-      ``"none"`` (all points). Measured on the simulated lab (0.1 m, guess 0.8 m off):
-      bbox eps_t 0.80 -> 0.15, voxel (3-voxel radius) 0.80 -> 0.52; with a 0.05 rad yaw error
-      too: bbox eps_r 0.14 -> 0.07, voxel 0.14 -> 0.22. Voxel overlap keeps only points the
-      guess already brings close, so a wrong guess also selects wrong "common" points.
+    - ``refine``: ``"icp"`` (one ICP from the guess on the commonly mapped subsets),
+      ``"multi"`` (candidates from ``hypotheses``, the one whose maps agree best picked, then
+      one ICP on the commonly mapped subsets from it, kept if the maps agree better; for poor
+      guesses), ``"dense"`` (``registration.align_dense``: the occupancy fields),
+      ``"icp+dense"`` (both, dense from ICP's result) or ``"none"`` (trust the guess).
+    - ``overlap``: ``"bbox"`` (thesis Alg. 2: intersection of bounding boxes; the default),
+      ``"voxel"`` (points near the other map's points under the guess) or ``"none"`` (all
+      points).
     - ``overlap_margin``: [m] the overlap test's slack: ``radius`` of ``"voxel"`` (a point is
       kept if the other cloud has a point that close under the guess), ``margin`` of
       ``"bbox"`` (``None``: 3 voxels for ``"voxel"``, the thesis's 1 m for ``"bbox"``).
     - ``min_overlap_points``: fewer common points in either map means "no overlap" (an error).
     - ``max_correspondence_distance`` / ``min_correspondence_distance`` [m]: ICP's distance
-      schedule (``None``: 10 and 2 voxels), halved by ``shrink_factor`` each time the change of
+      schedule (``None``: 10 and 2 voxels), shrunk by ``shrink_factor`` each time the change of
       the transform falls below ``transformation_epsilon`` (``None``: resolution / 60).
     - ``max_iterations``, ``min_inliers``, ``cell_capacity``: ICP limits (see ``registration.icp``).
     - ``coarse_matching``: ICP's coarse stages: ``"centroid"`` (every 4th source point, from
-      8192 points up, to the target's voxel-grid centroids; the default), ``"symmetric"`` (both
-      clouds' centroids: over random starts of the benchmark pair closer at 0.1 m, mean 0.006
-      against 0.013 rad, not at 0.05 m, 0.008 against 0.005; not the default: it loses basins
-      at coarse cells) or ``"nearest"`` (Open3D's fixed point).
-      See ``registration.icp``.
-    - ``hypotheses``: where ``refine="multi"`` starts its ICP runs: ``"yaw_grid"`` (the guess
-      turned about map 2's centroid every ``yaw_step_rad``, plus +-``roll_pitch_offset_rad`` of
-      roll and pitch: keeps the guess's translation), ``"correlation"`` (the
-      ``correlation_hypotheses`` best poses of ``registration.correlation_search``: a fine yaw
-      grid x every translation, scored by the maps' occupancy agreement; for partial overlap
-      and guesses whose translation is metres off; the best ``correlation_dense`` of them also
-      start the dense alignment, 0 turns that off; the search keeps the guess's roll and
-      pitch, and searches a guess tilted by more than 0.02 rad level too, for z-up maps) or
-      ``"both"`` (the default). Measured on the simulated lab / office ``.bt`` pairs
-      (0.05 m), guesses off by six yaws (0.5-3 rad, + 0.36 m) and five with 0.05-0.15 rad of
-      roll / pitch too (22 rows), right (< 0.1 m): ``"both"`` 22 (0.009-0.037 m, 14-25 s warm
-      here), ``"correlation"`` 19 (tilted lab 2 of 5; 8-21 s), ``"yaw_grid"`` 16 (all tilted,
-      6 of 12 flat: the lab turned by pi, the office slid along its corridor; 7-15 s); the
-      failures are complementary (large yaw / translation vs tilt). With ``"both"`` the
-      correlation candidates' pick is taken over the yaw grid's (each after its local step)
-      when only it passes the dense status checks (agreement, overlap), else only when its map
-      loss is lower by more than ``far_margin`` (relative): where the maps agree about as well
-      at a wrong pose, the guess decides. Measured: far right pose 4.6 %
-      (tests' hall) and 12 % (simulated office, 0.05 m) lower than the near wrong one; a
-      wrong far pose 2 % lower than the truth (simulated lab, 0.05 m).
+      8192 points up, to the target's voxel-grid centroids; the default), ``"symmetric"``
+      (both clouds' centroids) or ``"nearest"`` (Open3D's fixed point). See ``registration.icp``.
+    - ``hypotheses``: where ``refine="multi"`` starts: ``"yaw_grid"`` (the guess turned about
+      map 2's centroid every ``yaw_step_rad``, plus +-``roll_pitch_offset_rad`` of roll and
+      pitch; keeps the guess's translation), ``"correlation"`` (the ``correlation_hypotheses``
+      best poses of ``registration.correlation_search``: a fine yaw grid x every translation,
+      scored by the maps' occupancy agreement; the best ``correlation_dense`` of them also
+      start the dense alignment, 0 turns that off; a guess tilted by more than 0.02 rad is
+      also searched level) or ``"both"`` (the default). With ``"both"`` the correlation
+      candidates' pick is taken over the yaw grid's when only it passes the dense status
+      checks (agreement, overlap), else only when its map loss is lower by more than
+      ``far_margin`` (relative).
     - ``on_not_converged``: ICP stopped at ``max_iterations``: ``"warn"`` (use its transform,
       report ``converged = false``), ``"error"`` (fail) or ``"use_initial"`` (merge with the
       guess). Too few inliers is always an error unless ``refine="none"``.
@@ -171,8 +158,7 @@ class DemoConfig:
     """``octomerge demo``: the simulated two-robot job (``sim.make_two_robot_maps``).
 
     ``error_xyz`` [m] and ``error_rpy_rad`` perturb the true ``T_1_2`` to make the erroneous
-    initial guess (default 0.5 m and 0.05 rad: eps_t 0.7, eps_r 0.14. The thesis's Fig. 7.6
-    case, 0.265 rad of yaw, is not corrected by ICP on our lab scene: try ``--yaw-error``).
+    initial guess (thesis eqs. 7.2/7.3 give its eps_r / eps_t).
     """
 
     scene: str = "lab"  # "lab", "office" or "campus" (outdoor, lidar: use resolution 0.2)
@@ -395,8 +381,6 @@ def load_config(path) -> MergeConfig:
 
 def save_config(cfg: MergeConfig, path) -> None:
     """Write ``cfg`` as TOML (or JSON for a ``.json`` path), atomically."""
-    from ._fileutil import atomic_write_bytes
-
     path = Path(path)
     if path.suffix.lower() == ".json":
         text = json.dumps(config_to_dict(cfg), indent=2) + "\n"

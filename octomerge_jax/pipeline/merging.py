@@ -10,16 +10,11 @@
 
 Frames: ``T_1_2`` maps points of map 2's frame into map 1's frame (``T_m1_m2``); the merged map
 is in map 1's frame with map 1's parameters. Every stage is a jitted function from the modules
-it names; this module plans on the host, times each stage (``block_until_ready``) and turns
-statuses into a ``MergeReport`` or, for problems the user must fix (mixed resolutions, no
-overlap, ICP without enough inliers, a NaN guess), a ``MergeError`` whose ``kind`` says which
-(``report.py``). The registration step (``register``, all refine modes) is ``refine.py``.
-
-The ICP result is judged on the host by ``config.registration.on_not_converged``: ICP that ran
-out of iterations is usually close (it is still shrinking its correspondence distance), so the
-default is to use it and say so in ``report.warnings``; too few inliers means the guess put the
-maps where they do not overlap, which is always an error (refine ``"multi"`` or a better guess
-helps).
+it names; this module plans on the host, times each stage and turns statuses into a
+``MergeReport`` or, for problems the user must fix (mixed resolutions, no overlap, ICP without
+enough inliers, a NaN guess), a ``MergeError`` whose ``kind`` says which. The registration
+step is ``refine.py``; ICP's result is judged there (``accept_icp``) by
+``config.registration.on_not_converged``.
 """
 
 from __future__ import annotations
@@ -31,67 +26,53 @@ from typing import Sequence
 
 import numpy as np
 
+from .. import morton
+from .. import registration as reg
+from .. import se3
+from ..fusion import fuse_many_with_report, fuse_with_report
+from ..map import OccupancyMap, empty
+from ..resample import check_rigid_transform, sample, transform_map
+from ..tree import from_voxels
 from .config import MergeConfig, validate
-from .map import OccupancyMap
-from .refine import _reg, _timed, icp_trace, point_stats, rank_by_map_agreement, register
-from .report import MergeError, MergeReport
+from .refine import register
+from .report import MergeError, MergeReport, Registration
+from .timings import Timings
 
-__all__ = [
-    "MergeError",
-    "MergeReport",
-    "merge",
-    "merge_many",
-    "icp_trace",
-    "resample_to_resolution",
-    "transform_from_xyz_rpy",
-    # the registration step (refine.py), also here: used with merge's config and report
-    "register",
-    "rank_by_map_agreement",
-    "point_stats",
-]
-
-
-# ----------------------------------------------------------------------------- helpers
+__all__ = ["check_resolutions", "check_transform", "config_with_overrides", "merge",
+           "merge_many", "pair_report", "resample_to_resolution", "transform_from_xyz_rpy",
+           "transform_to_frame_1"]
 
 
 def transform_from_xyz_rpy(x: float = 0.0, y: float = 0.0, z: float = 0.0, roll_rad: float = 0.0,
                            pitch_rad: float = 0.0, yaw_rad: float = 0.0) -> np.ndarray:
     """``(4, 4)`` float64 from a translation [m] and roll/pitch/yaw [rad] (``R = Rz Ry Rx``,
-    OctoMap's ``Pose6D``), as the thesis's command line ``x y z roll pitch yaw``. Raises
-    ``ValueError`` naming the value if one is NaN or infinite."""
+    OctoMap's ``Pose6D``; ``se3.from_xyz_rpy``), as the thesis's command line
+    ``x y z roll pitch yaw``. Raises ``MergeError("transform")`` naming the value if one is NaN
+    or infinite."""
     vals = dict(x=x, y=y, z=z, roll=roll_rad, pitch=pitch_rad, yaw=yaw_rad)
     for name, v in vals.items():
         if not math.isfinite(float(v)):
             raise MergeError(f"initial guess: {name} = {v} is not a finite number", "transform")
-    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
-    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
-    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    R = np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                  [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                  [-sp, cp * sr, cp * cr]])
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = (x, y, z)
-    return T
+    return se3.from_xyz_rpy(x, y, z, roll_rad, pitch_rad, yaw_rad, xp=np)
 
 
-def _check_T(T, name: str) -> np.ndarray:
-    from .resample import check_rigid_transform
-
+def check_transform(T, name: str) -> np.ndarray:
+    """``T`` as a rigid ``(4, 4)`` float64 (``resample.check_rigid_transform``); raises
+    ``MergeError("transform")`` naming ``name`` otherwise."""
     try:
         return check_rigid_transform(T, name)
     except ValueError as err:
         raise MergeError(str(err), "transform") from None
 
 
-def _epsilons(T_est, T_true):
-    reg = _reg()
+def _epsilons(T_est, T_true) -> tuple[float, float]:
+    """Thesis eqs. 7.2 / 7.3: ``(epsilon_r, epsilon_t)`` of ``T_est`` against ``T_true``."""
     return float(reg.rotation_error(T_est, T_true)), float(reg.translation_error(T_est, T_true))
 
 
 def _displacements(m2: OccupancyMap, T_true, *Ts, max_points: int = 100_000) -> tuple:
-    """Mean ``point_displacement`` [m] of map 2's occupied leaf centres (an even subsample of
-    at most ``max_points``) under each of ``Ts`` against ``T_true``; ``None``s without truth."""
+    """Mean displacement [m] of map 2's occupied leaf centres (an even subsample of at most
+    ``max_points``) under each of ``Ts`` against ``T_true``; ``None``s without truth."""
     if T_true is None:
         return (None,) * len(Ts)
     L = m2.leaves()
@@ -101,15 +82,17 @@ def _displacements(m2: OccupancyMap, T_true, *Ts, max_points: int = 100_000) -> 
     p = p[:: max(1, -(-len(p) // max_points))]
     if len(p) == 0:
         return (None,) * len(Ts)
-    # NumPy float64 (registration.point_displacement on the host): map coordinates can be
-    # kilometres from the origin, where float32 would lose ~1e-4 m
+    # NumPy float64: map coordinates can be kilometres from the origin, where float32 would
+    # lose ~1e-4 m
     Ts, T_true = np.asarray(Ts, np.float64), np.asarray(T_true, np.float64)
     d = (Ts[:, None, :3, :3] - T_true[:3, :3]) @ p[..., None]
     d = np.linalg.norm(d[..., 0] + (Ts[:, None, :3, 3] - T_true[:3, 3]), axis=-1)
     return tuple(float(x) for x in d.mean(axis=-1))
 
 
-def check_resolutions(maps: Sequence[OccupancyMap], names: Sequence[str], allow_resample: bool):
+def check_resolutions(maps: Sequence[OccupancyMap], names: Sequence[str], allow_resample: bool) -> None:
+    """Raise ``MergeError("resolution")`` naming the maps when their resolutions differ and
+    ``allow_resample`` is false."""
     r0 = maps[0].resolution
     for m, name in zip(maps[1:], names[1:]):
         if not math.isclose(m.resolution, r0, rel_tol=1e-9) and not allow_resample:
@@ -125,15 +108,10 @@ def resample_to_resolution(m: OccupancyMap, resolution: float, *, chunk: int = 1
     Every finest voxel centre of the new grid inside ``m``'s leaf extent is sampled with
     ``resample.sample`` (trilinear in probability, unknown neighbours left out); voxels whose
     centre lies in unknown space stay unknown. Dense over the bounding box (chunked), so cost
-    grows with the box volume / ``resolution^3``: meant for maps of moderate extent.
+    grows with the box volume / ``resolution^3``: meant for maps of moderate extent. Raises
+    ``MergeError("resolution")`` above 2e8 samples.
     """
-    from . import morton
-    from .resample import sample
-    from .tree import from_voxels
-
     if m.num_leaves == 0:
-        from .map import empty
-
         return empty(resolution, m.params)
     lv = m.leaves()
     lo = (lv.keys.astype(np.float64) - morton.KEY_OFFSET) * m.resolution
@@ -159,7 +137,34 @@ def resample_to_resolution(m: OccupancyMap, resolution: float, *, chunk: int = 1
     return from_voxels(np.concatenate(centers), np.concatenate(values), resolution, params=m.params)
 
 
-# ----------------------------------------------------------------------------- merge
+def transform_to_frame_1(m2: OccupancyMap, T_1_2, config: MergeConfig, timings: Timings) -> OccupancyMap:
+    """Map 2 resampled into map 1's frame (``transform_map``, thesis Alg. 4-7), timed as
+    ``transform``. Raises ``MergeError("transform")``."""
+    tc = config.transform
+    try:
+        with timings.stage("transform") as stage:
+            return stage.ready(transform_map(m2, T_1_2, tc.interpolation, space=tc.space,
+                                             chunk_bricks=tc.chunk_bricks))
+    except ValueError as err:
+        raise MergeError(f"transforming map 2: {err}", "transform") from None
+
+
+def pair_report(m1: OccupancyMap, m2: OccupancyMap, registration: Registration, T_1_2_init, T_1_2_true,
+                config: MergeConfig, counts: dict, timings: dict, warnings: Sequence[str]) -> MergeReport:
+    """The ``MergeReport`` of one merged pair: ``registration`` with the thesis errors
+    (eqs. 7.2 / 7.3) and displacements against ``T_1_2_true`` when given."""
+    T_1_2 = registration.T_1_2
+    eps = (None, None, None, None)
+    if T_1_2_true is not None:
+        eps = (*_epsilons(T_1_2_init, T_1_2_true), *_epsilons(T_1_2, T_1_2_true))
+    disp = _displacements(m2, T_1_2_true, T_1_2_init, T_1_2)
+    return MergeReport(
+        T_1_2_init=T_1_2_init, T_1_2=T_1_2, refine=config.registration.refine, icp=registration.info,
+        epsilon_r_init=eps[0], epsilon_t_init=eps[1], epsilon_r=eps[2], epsilon_t=eps[3],
+        counts=counts, timings=dict(timings), resolution=m1.resolution, T_1_2_true=T_1_2_true,
+        warnings=tuple(warnings), status="ok" if registration.converged else "not_converged",
+        displacement_init=disp[0], displacement=disp[1], icp_result=registration.result,
+        points_1=registration.points_1, points_2=registration.points_2)
 
 
 def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | None = None,
@@ -172,7 +177,7 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
         unless ``resample=True``, which resamples ``m2`` onto ``m1``'s grid first).
       T_1_2_init: ``(4, 4)`` initial guess mapping map 2's frame into map 1's [m]
         (``None``: identity; see ``transform_from_xyz_rpy``).
-      refine: ``"icp"``, ``"multi"`` (multi-hypothesis ICP for poor guesses), ``"dense"``
+      refine: ``"icp"``, ``"multi"`` (multi-hypothesis search for poor guesses), ``"dense"``
         (``align_dense``: gradient-based alignment of the occupancy fields), ``"icp+dense"``
         or ``"none"``.
       overlap: ``"bbox"`` (thesis Alg. 2, default) or ``"voxel"`` subsets fed to ICP, or
@@ -184,72 +189,83 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
 
     Raises ``MergeError`` (a ``ValueError``) with ``kind`` for inputs the user must fix.
     """
-    cfg = _with_overrides(config, refine, overlap, interpolation, rule, resample)
-    timings: dict = {}
-    warnings: list = []
+    cfg = config_with_overrides(config, refine, overlap, interpolation, rule, resample)
+    timings = Timings()
+    warnings: list[str] = []
     t_start = time.perf_counter()
     check_resolutions([m1, m2], ["map 1", "map 2"], cfg.transform.resample_resolution)
     if not math.isclose(m1.resolution, m2.resolution, rel_tol=1e-9):
-        m2 = _timed(timings, "resample", resample_to_resolution, m2, m1.resolution)
+        with timings.stage("resample") as stage:
+            m2 = stage.ready(resample_to_resolution(m2, m1.resolution))
         warnings.append(f"map 2 was resampled to map 1's resolution {m1.resolution:g} m")
-    T_init = np.eye(4) if T_1_2_init is None else _check_T(T_1_2_init, "T_1_2_init")
-    T_true = None if T_1_2_true is None else _check_T(T_1_2_true, "T_1_2_true")
+    T_init = np.eye(4) if T_1_2_init is None else check_transform(T_1_2_init, "T_1_2_init")
+    T_true = None if T_1_2_true is None else check_transform(T_1_2_true, "T_1_2_true")
     if m1.num_leaves == 0 and m2.num_leaves == 0:
         raise MergeError("both maps are empty", "empty")
 
-    T_1_2, info, result, counts, q1, q2 = register(m1, m2, T_init, cfg, timings, warnings)
-    counts = {"leaves_1": m1.num_leaves, "leaves_2": m2.num_leaves, **counts}
-    merged, more = _transform_and_fuse(m1, m2, T_1_2, cfg, timings)
-    counts.update(more)
+    registration = register(m1, m2, T_init, cfg, timings)
+    m2_in_1 = transform_to_frame_1(m2, registration.T_1_2, cfg, timings)
+    weights = tuple(cfg.fuse.weights[:2]) if len(cfg.fuse.weights) >= 2 else (1.0, 1.0)
+    with timings.stage("fuse") as stage:
+        merged, frep = stage.ready(fuse_with_report(m1, m2_in_1, cfg.fuse.rule, weights=weights))
+    counts = {"leaves_1": m1.num_leaves, "leaves_2": m2.num_leaves, **registration.counts,
+              "leaves_2_transformed": m2_in_1.num_leaves, "leaves_merged": merged.num_leaves,
+              "fuse": frep.host()}
     timings["total"] = time.perf_counter() - t_start
-    eps = (None, None, None, None)
-    if T_true is not None:
-        eps = (*_epsilons(T_init, T_true), *_epsilons(T_1_2, T_true))
-    report = MergeReport(
-        T_1_2_init=T_init, T_1_2=T_1_2, refine=cfg.registration.refine, icp=info,
-        epsilon_r_init=eps[0], epsilon_t_init=eps[1], epsilon_r=eps[2], epsilon_t=eps[3],
-        counts=counts, timings=timings, resolution=m1.resolution, T_1_2_true=T_true,
-        warnings=tuple(warnings), status="ok" if info is None or info["converged"] else "not_converged",
-        icp_result=result, points_1=q1, points_2=q2)
-    d = _displacements(m2, T_true, T_init, T_1_2)
-    return merged, dataclasses.replace(report, displacement_init=d[0], displacement=d[1])
+    return merged, pair_report(m1, m2, registration, T_init, T_true, cfg, counts, timings,
+                               [*warnings, *registration.warnings])
 
 
-def _with_overrides(config, refine, overlap, interpolation, rule, resample) -> MergeConfig:
+def config_with_overrides(config, refine=None, overlap=None, interpolation=None, rule=None,
+                          resample=None) -> MergeConfig:
+    """``config`` (default ``MergeConfig()``) with the keyword overrides of ``merge`` applied
+    (``None``: keep), validated."""
     cfg = MergeConfig() if config is None else config
-    reg, tr, fu = {}, {}, {}
+    reg_, tr, fu = {}, {}, {}
     if refine is not None:
-        reg["refine"] = refine
+        reg_["refine"] = refine
     if overlap is not None:
-        reg["overlap"] = overlap
+        reg_["overlap"] = overlap
     if interpolation is not None:
         tr["interpolation"] = interpolation
     if resample is not None:
         tr["resample_resolution"] = bool(resample)
     if rule is not None:
         fu["rule"] = rule
-    if reg or tr or fu:
-        cfg = cfg.replace(registration=reg, transform=tr, fuse=fu)
+    if reg_ or tr or fu:
+        cfg = cfg.replace(registration=reg_, transform=tr, fuse=fu)
     validate(cfg)
     return cfg
 
 
-def _transform_and_fuse(m1, m2, T_1_2, cfg: MergeConfig, timings: dict):
-    from .fuse import fuse
-    from .resample import transform_map
-
-    tc = cfg.transform
-    try:
-        m2_in_1 = _timed(timings, "transform", transform_map, m2, T_1_2, tc.interpolation,
-                         space=tc.space, chunk_bricks=tc.chunk_bricks)
-    except ValueError as err:
-        raise MergeError(f"transforming map 2: {err}", "transform") from None
-    weights = tuple(cfg.fuse.weights[:2]) if len(cfg.fuse.weights) >= 2 else (1.0, 1.0)
-    merged, frep = _timed(timings, "fuse", fuse, m1, m2_in_1, cfg.fuse.rule, weights=weights,
-                          return_report=True)
-    counts = {"leaves_2_transformed": m2_in_1.num_leaves, "leaves_merged": merged.num_leaves,
-              "fuse": frep.host()}
-    return merged, counts
+def _spanning_tree(n: int, T_inits, pairs) -> tuple[dict, dict, list[int]]:
+    """``merge_many``'s registration plan: ``(parent {k: i}, guess {k: T_i_k or None}, order)``
+    with ``order`` breadth-first from map 0 so that parents are registered first."""
+    if pairs is None:
+        T_inits = [None] * (n - 1) if T_inits is None else list(T_inits)
+        if len(T_inits) != n - 1:
+            raise ValueError(f"T_inits has {len(T_inits)} transforms for {n} maps (need {n - 1})")
+        parent = {k: 0 for k in range(1, n)}
+        guess = {k: T_inits[k - 1] for k in range(1, n)}
+    else:
+        parent, guess = {}, {}
+        for (i, k), T in dict(pairs).items():
+            if k in parent or k == 0:
+                raise ValueError(f"pairs: map {k} has two parents (or is the root); give a tree")
+            parent[k], guess[k] = int(i), T
+        if sorted(parent) != list(range(1, n)):
+            raise ValueError(f"pairs must give every map 1..{n - 1} one parent, got {sorted(parent)}")
+    order, seen = [], {0}
+    while len(order) < n - 1:
+        grew = False
+        for k in range(1, n):
+            if k not in seen and parent[k] in seen:
+                order.append(k)
+                seen.add(k)
+                grew = True
+        if not grew:
+            raise ValueError("pairs do not connect every map to map 0 (cycle or gap)")
+    return parent, guess, order
 
 
 def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine: str | None = None,
@@ -268,83 +284,58 @@ def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine
 
     Returns ``(merged, reports)``: one ``MergeReport`` per non-root map (its ``T_1_2`` is
     ``T_parent_k`` and ``counts["leaves_merged"]`` the final map's), plus the ``fuse_many``
-    counts in ``reports[0].counts["fuse_many"]``.
+    counts in ``reports[0].counts["fuse_many"]``. Raises ``ValueError`` for a bad plan,
+    ``MergeError`` as ``merge``.
     """
-    from .fuse import fuse_many
-    from .resample import transform_map
-
     maps = list(maps)
     if len(maps) < 2:
         raise ValueError("merge_many needs at least two maps")
-    cfg = _with_overrides(config, refine, None, None, rule, None)
+    cfg = config_with_overrides(config, refine, None, None, rule, None)
     check_resolutions(maps, [f"maps[{i}]" for i in range(len(maps))], False)
     n = len(maps)
-    if pairs is None:
-        T_inits = [None] * (n - 1) if T_inits is None else list(T_inits)
-        if len(T_inits) != n - 1:
-            raise ValueError(f"T_inits has {len(T_inits)} transforms for {n} maps (need {n - 1})")
-        parent = {k: 0 for k in range(1, n)}
-        guess = {k: T_inits[k - 1] for k in range(1, n)}
-    else:
-        parent, guess = {}, {}
-        for (i, k), T in dict(pairs).items():
-            if k in parent or k == 0:
-                raise ValueError(f"pairs: map {k} has two parents (or is the root); give a tree")
-            parent[k], guess[k] = int(i), T
-        if sorted(parent) != list(range(1, n)):
-            raise ValueError(f"pairs must give every map 1..{n - 1} one parent, got {sorted(parent)}")
-    order, seen = [], {0}
-    while len(order) < n - 1:  # breadth-first from the root so parents are refined first
-        grew = False
-        for k in range(1, n):
-            if k not in seen and parent[k] in seen:
-                order.append(k)
-                seen.add(k)
-                grew = True
-        if not grew:
-            raise ValueError("pairs do not connect every map to map 0 (cycle or gap)")
+    parent, guess, order = _spanning_tree(n, T_inits, pairs)
     T_trues = [None] * (n - 1) if T_trues is None else list(T_trues)
     T_0 = {0: np.eye(4)}
     reports = {}
     for k in order:
-        timings, warnings = {}, []
+        timings = Timings()
         t0 = time.perf_counter()
         i = parent[k]
-        T_init = np.eye(4) if guess[k] is None else _check_T(guess[k], f"T_{i}_{k}")
-        T_i_k, info, result, counts, q1, q2 = register(maps[i], maps[k], T_init, cfg, timings, warnings)
-        T_0[k] = T_0[i] @ T_i_k
+        T_init = np.eye(4) if guess[k] is None else check_transform(guess[k], f"T_{i}_{k}")
+        registration = register(maps[i], maps[k], T_init, cfg, timings)
+        T_0[k] = T_0[i] @ registration.T_1_2
         timings["total"] = time.perf_counter() - t0
         eps, disp = (None, None, None, None), (None, None)
         if T_trues[k - 1] is not None:
-            T_true = _check_T(T_trues[k - 1], f"T_trues[{k - 1}]")
+            T_true = check_transform(T_trues[k - 1], f"T_trues[{k - 1}]")
             eps = (*_epsilons(T_0[i] @ T_init, T_true), *_epsilons(T_0[k], T_true))
             disp = _displacements(maps[k], T_true, T_0[i] @ T_init, T_0[k])
         reports[k] = MergeReport(
-            T_1_2_init=T_init, T_1_2=T_i_k, refine=cfg.registration.refine, icp=info,
+            T_1_2_init=T_init, T_1_2=registration.T_1_2, refine=cfg.registration.refine, icp=registration.info,
             epsilon_r_init=eps[0], epsilon_t_init=eps[1], epsilon_r=eps[2], epsilon_t=eps[3],
-            counts={"leaves_1": maps[i].num_leaves, "leaves_2": maps[k].num_leaves, **counts},
-            timings=timings, resolution=maps[0].resolution, warnings=tuple(warnings),
-            status="ok" if info is None or info["converged"] else "not_converged",
-            displacement_init=disp[0], displacement=disp[1], icp_result=result, points_1=q1, points_2=q2)
+            counts={"leaves_1": maps[i].num_leaves, "leaves_2": maps[k].num_leaves, **registration.counts},
+            timings=dict(timings), resolution=maps[0].resolution, warnings=registration.warnings,
+            status="ok" if registration.converged else "not_converged",
+            displacement_init=disp[0], displacement=disp[1], icp_result=registration.result,
+            points_1=registration.points_1, points_2=registration.points_2)
     tc = cfg.transform
     moved = [maps[0]]
-    t_tr = {}
+    t_all = Timings()
     for k in range(1, n):
-        moved.append(_timed(t_tr, "transform", transform_map, maps[k], T_0[k], tc.interpolation,
-                            space=tc.space, chunk_bricks=tc.chunk_bricks))
+        with t_all.stage("transform") as stage:
+            moved.append(stage.ready(transform_map(maps[k], T_0[k], tc.interpolation, space=tc.space,
+                                                   chunk_bricks=tc.chunk_bricks)))
     weights = list(cfg.fuse.weights) if cfg.fuse.rule == "weighted" else None
     if weights is not None and len(weights) != n:
         raise ValueError(f"fuse.weights has {len(weights)} entries for {n} maps")
-    merged, frep = _timed(t_tr, "fuse", fuse_many, moved, cfg.fuse.rule, weights=weights,
-                          return_report=True)
+    with t_all.stage("fuse") as stage:
+        merged, frep = stage.ready(fuse_many_with_report(moved, cfg.fuse.rule, weights=weights))
     out = []
     for k in range(1, n):
         r = reports[k]
-        counts = {**r.counts, "leaves_merged": merged.num_leaves,
-                  "leaves_2_transformed": moved[k].num_leaves}
+        counts = {**r.counts, "leaves_merged": merged.num_leaves, "leaves_2_transformed": moved[k].num_leaves}
         if k == 1:
             counts["fuse_many"] = frep.host()
-        timings = {**r.timings, "transform_all": t_tr["transform"], "fuse_all": t_tr["fuse"]}
+        timings = {**r.timings, "transform_all": t_all["transform"], "fuse_all": t_all["fuse"]}
         out.append(dataclasses.replace(r, counts=counts, timings=timings))
     return merged, out
-

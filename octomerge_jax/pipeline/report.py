@@ -1,5 +1,6 @@
-"""What a merge reports: ``MergeReport`` (host values, JSON) and ``MergeError`` (an input the
-user must fix, with a ``kind`` that says which)."""
+"""What a merge reports: ``Registration`` (the registration step's outcome), ``MergeReport``
+(host values, JSON) and ``MergeError`` (an input the user must fix, with a ``kind`` that says
+which)."""
 
 from __future__ import annotations
 
@@ -11,12 +12,12 @@ import re
 import jax
 import numpy as np
 
-__all__ = ["MergeError", "MergeReport", "ICP_STATUS_NAMES", "DENSE_STATUS_NAMES"]
+from .._fileutil import atomic_write_bytes
+
+__all__ = ["MergeError", "MergeReport", "Registration"]
 
 _NUM_LIST = re.compile(r"\[\s*((?:-?[0-9.eE+-]+|null)(?:,\s*(?:-?[0-9.eE+-]+|null))*)\s*\]")
 
-ICP_STATUS_NAMES = {0: "converged", 1: "max_iterations", 2: "too_few_inliers"}
-DENSE_STATUS_NAMES = {0: "converged", 1: "max_iterations", 2: "poor_agreement", 3: "low_overlap", 4: "not_finite"}
 
 
 class MergeError(ValueError):
@@ -31,6 +32,35 @@ class MergeError(ValueError):
 
 
 @dataclasses.dataclass(frozen=True)
+class Registration:
+    """The registration step's outcome (``register``; thesis Alg. 1-3), host values.
+
+    - ``T_1_2``: ``(4, 4)`` float64, the transform to merge with (map 2's frame into map 1's
+      [m]), rigid (``se3.project_to_rigid``).
+    - ``converged``: whether the solver whose transform is used converged (``True`` for
+      ``refine="none"``).
+    - ``info``: the solver's figures, JSON-ready (``MergeReport.icp``); ``None`` for
+      ``refine="none"``.
+    - ``result``: the solver's own result (``IcpResult``, ``IcpMultiResult``, ``AlignResult``)
+      or ``None``.
+    - ``counts``: point counts: ``occupied_1`` / ``occupied_2`` and, when subsets were cut,
+      ``overlap_1`` / ``overlap_2``.
+    - ``points_1`` ``(n1, 3)``, ``points_2`` ``(n2, 3)``: float32 [m], the clouds registered
+      (the overlap subsets, or the occupied clouds), each in its own map's frame.
+    - ``warnings``: human-readable lines (ICP not converged, dense alignment failed, ...).
+    """
+
+    T_1_2: np.ndarray
+    converged: bool
+    info: dict | None
+    result: object
+    counts: dict
+    points_1: np.ndarray
+    points_2: np.ndarray
+    warnings: tuple[str, ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
 class MergeReport:
     """What a merge did (host values; ``to_json()`` writes the fields below by these names).
 
@@ -40,7 +70,7 @@ class MergeReport:
     - ``refine``: ``"icp"``, ``"multi"``, ``"dense"``, ``"icp+dense"`` or ``"none"``.
     - ``icp``: the ICP result as a dict (``converged``, ``status``, ``num_iterations``,
       ``num_inliers``, ``rmse`` [m], ``fitness``, ``correspondence_distance`` [m], ...; for
-      ``"dense"`` the same keys for the dense alignment (status names ``DENSE_STATUS_NAMES``,
+      ``"dense"`` the same keys for the dense alignment (status names ``str(Status)``,
       the point statistics measured at its transform by ``point_stats``) and its own figures
       under ``dense`` (for ``"icp+dense"``: ICP's fields, and under ``dense`` the dense
       alignment's with the point statistics at the transform used; ``start_level``, the index
@@ -109,8 +139,6 @@ class MergeReport:
         text = _NUM_LIST.sub(lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]",
                              text) + "\n"
         if path is not None:
-            from ._fileutil import atomic_write_bytes
-
             atomic_write_bytes(path, text.encode())
         return text
 

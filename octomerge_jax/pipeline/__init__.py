@@ -1,0 +1,24 @@
+"""The merge pipeline (thesis Ch. 6): configuration, the registration step, ``merge``,
+``merge_many`` and ``merge_batch``, and what they report."""
+
+from .batch import BatchResult, merge_batch
+from .clouds import VOXEL_OVERLAP_VOXELS, overlap_margin, point_stats
+from .config import (COARSE_MATCHING_CHOICES, DEMO_SCENES, HYPOTHESES_CHOICES, ON_NOT_CONVERGED_CHOICES,
+                     OVERLAP_CHOICES, REFINE_CHOICES, BatchConfig, DemoConfig, FuseConfig, MergeConfig,
+                     RegistrationConfig, TransformConfig, config_from_dict, config_to_dict, dumps_toml, load_config,
+                     save_config, validate)
+from .merging import check_resolutions, merge, merge_many, resample_to_resolution, transform_from_xyz_rpy
+from .ranking import rank_by_map_agreement
+from .refine import register
+from .report import MergeError, MergeReport, Registration
+from .timings import Timings
+from .trace import icp_trace
+
+__all__ = [
+    "BatchConfig", "BatchResult", "COARSE_MATCHING_CHOICES", "DEMO_SCENES", "DemoConfig", "FuseConfig",
+    "HYPOTHESES_CHOICES", "MergeConfig", "MergeError", "MergeReport", "ON_NOT_CONVERGED_CHOICES",
+    "OVERLAP_CHOICES", "REFINE_CHOICES", "Registration", "RegistrationConfig", "Timings", "TransformConfig",
+    "VOXEL_OVERLAP_VOXELS", "check_resolutions", "config_from_dict", "config_to_dict", "dumps_toml", "icp_trace",
+    "load_config", "merge", "merge_batch", "merge_many", "overlap_margin", "point_stats", "rank_by_map_agreement",
+    "register", "resample_to_resolution", "save_config", "transform_from_xyz_rpy", "validate",
+]

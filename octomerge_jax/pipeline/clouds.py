@@ -1,0 +1,119 @@
+"""The point clouds registration works on (thesis Alg. 1-2) and ICP's settings and figures:
+``occupied_clouds``, ``select_overlap``, ``overlap_margin``, ``icp_kwargs``, ``icp_info``,
+``point_stats`` and ``usable`` (which solver statuses give a transform to use)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .. import registration as reg
+from ..map import OccupancyMap
+from ..registration import Status
+from .config import MergeConfig
+from .timings import Timings
+
+__all__ = ["Clouds", "VOXEL_OVERLAP_VOXELS", "icp_info", "icp_kwargs", "occupied_clouds", "overlap_margin",
+           "point_stats", "select_overlap", "usable"]
+
+VOXEL_OVERLAP_VOXELS = 3.0
+
+_USABLE = np.asarray([s for s in Status if s.usable], np.int32)
+
+
+def usable(status) -> np.ndarray:
+    """Whether each solver status code (any shape, ``Status`` values) gives a transform to use
+    (``Status.usable``: converged or at the iteration limit); bool array of that shape."""
+    return np.isin(np.asarray(status), _USABLE)
+
+
+class Clouds(NamedTuple):
+    """The occupied-voxel centres of both maps (thesis Alg. 1), float32 [m], each in its map's frame."""
+
+    points_1: np.ndarray  # (n1, 3)
+    points_2: np.ndarray  # (n2, 3)
+
+
+def occupied_clouds(m1: OccupancyMap, m2: OccupancyMap, timings: Timings) -> Clouds:
+    """Both maps' occupied leaf centres (``registration.occupied_points``), timed as
+    ``occupied_points``."""
+    with timings.stage("occupied_points") as stage:
+        p1 = stage.ready(reg.occupied_points(m1))
+    with timings.stage("occupied_points") as stage:
+        p2 = stage.ready(reg.occupied_points(m2))
+    return Clouds(np.asarray(p1, np.float32).reshape(-1, 3), np.asarray(p2, np.float32).reshape(-1, 3))
+
+
+def overlap_margin(cfg: MergeConfig, resolution: float) -> float | None:
+    """The overlap slack [m]: ``registration.overlap_margin`` if set; else, for ``"voxel"``,
+    ``3 * resolution`` (a point is kept if the other cloud has a point within 3 voxels under
+    the guess); for ``"bbox"`` ``None`` (the thesis's 1 m, ``registration.overlap``'s default)."""
+    m = cfg.registration.overlap_margin
+    if m is not None:
+        return float(m)
+    if cfg.registration.overlap == "voxel":
+        return VOXEL_OVERLAP_VOXELS * float(resolution)
+    return None
+
+
+def select_overlap(points_1, points_2, T_1_2, method: str, margin: float | None):
+    """Overlap subsets ``(q1 (k1, 3), q2 (k2, 3))`` float32 (each in its own frame) of the two
+    occupied clouds under ``T_1_2`` (``registration.overlap``, thesis Alg. 2); ``method``
+    ``"none"`` returns the clouds as they are."""
+    if method == "none":
+        return points_1, points_2
+    kw = {} if margin is None else {("radius" if method == "voxel" else "margin"): margin}
+    out = reg.overlap(points_1, points_2, T_1_2, method=method, **kw)
+    q1, q2 = np.asarray(out[0]), np.asarray(out[1])
+    # the registration module may return boolean masks or the subsets themselves
+    if q1.dtype == bool:
+        q1 = np.asarray(points_1)[q1]
+    if q2.dtype == bool:
+        q2 = np.asarray(points_2)[q2]
+    return q1.astype(np.float32), q2.astype(np.float32)
+
+
+def icp_kwargs(cfg: MergeConfig, resolution: float) -> dict:
+    """The keyword arguments of ``registration.icp`` / ``icp_multi`` from the config."""
+    r = cfg.registration
+    return dict(resolution=resolution, max_correspondence_distance=r.max_correspondence_distance,
+                min_correspondence_distance=r.min_correspondence_distance,
+                shrink_factor=r.shrink_factor, transformation_epsilon=r.transformation_epsilon,
+                max_iterations=r.max_iterations, cell_capacity=r.cell_capacity,
+                min_inliers=r.min_inliers, coarse_matching=r.coarse_matching)
+
+
+def icp_info(r) -> dict:
+    """An ``IcpResult``'s figures for the report (JSON-ready; ``status`` as ``str(Status)``)."""
+    return dict(
+        converged=bool(r.converged),
+        status=str(Status(int(r.status))),
+        num_iterations=int(r.num_iterations),
+        num_inliers=int(r.num_inliers),
+        rmse=float(r.rmse),
+        fitness=float(r.fitness),
+        correspondence_distance=float(r.correspondence_distance),
+        grid_overflow=int(r.grid_overflow),
+        swapped=bool(r.swapped),
+    )
+
+
+def point_stats(points_1, points_2, T_1_2, config: MergeConfig, resolution: float) -> dict:
+    """``num_inliers``, ``rmse`` [m], ``fitness`` and ``correspondence_distance`` [m] of map 2's
+    occupied points placed by ``T_1_2`` against map 1's (``registration.evaluate_registration``
+    on the commonly mapped subsets under ``T_1_2``, ``registration.overlap``, within ICP's floor
+    distance, 2 res by default): the figures ICP reports at its result, for a transform that
+    did not come from ICP (the dense alignment)."""
+    rc = config.registration
+    d = float(reg.stage_distances(resolution, rc.max_correspondence_distance, rc.min_correspondence_distance,
+                                  rc.shrink_factor)[-1])
+    T = np.asarray(T_1_2, np.float64)
+    if not np.all(np.isfinite(T)):
+        return dict(num_inliers=0, rmse=float("nan"), fitness=0.0, correspondence_distance=d)
+    q1, q2 = select_overlap(points_1, points_2, T, rc.overlap, overlap_margin(config, resolution))
+    if min(q1.shape[0], q2.shape[0]) == 0:
+        return dict(num_inliers=0, rmse=float("nan"), fitness=0.0, correspondence_distance=d)
+    st = reg.evaluate_registration(q2, q1, T, d, cell_capacity=rc.cell_capacity)
+    return dict(num_inliers=int(st.num_inliers), rmse=float(st.rmse), fitness=float(st.fitness),
+                correspondence_distance=d)

@@ -1,0 +1,243 @@
+"""The registration step of a merge (thesis Alg. 1-3): ``register`` turns the initial guess
+into the transform used, per ``config.registration.refine``, one function per mode:
+
+- ``"none"``: the guess as is (``register_none``);
+- ``"icp"``: ICP on the commonly mapped subsets (``overlap`` under the guess, Alg. 2 + 3;
+  ``register_icp``), judged by ``accept_icp`` (the one ICP status policy);
+- ``"multi"``: candidates from the yaw grid and / or the correlation search
+  (``candidates.py``), picked by the agreement of the two *maps*, then a local ICP step
+  (``ranking.py``; ``register_multi``);
+- ``"dense"``: ``align_dense`` (the occupancy fields, gradient-based; ``register_dense``);
+- ``"icp+dense"``: ICP, then the dense alignment from its result (``dense_after_icp``).
+
+Every mode reports ICP's fields (``status`` as ``str(Status)``, inliers, rmse, fitness); a
+transform that did not come from ICP gets them measured at it (``point_stats``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .. import registration as reg
+from .. import se3
+from ..map import OccupancyMap
+from ..registration import Status
+from .candidates import multi_candidates
+from .clouds import Clouds, icp_info, icp_kwargs, occupied_clouds, overlap_margin, point_stats, select_overlap
+from .config import MergeConfig
+from .ranking import rank_and_refine
+from .report import MergeError, Registration
+from .timings import Timings
+
+__all__ = ["DenseStep", "Overlap", "accept_icp", "dense_after_icp", "overlap_for_icp", "refine_dense", "register",
+           "register_dense", "register_icp", "register_multi", "register_none"]
+
+
+class Overlap(NamedTuple):
+    """The clouds ICP registers (``overlap_for_icp``), float32 [m], each in its map's frame."""
+
+    points_1: np.ndarray  # (k1, 3) map 1's (ICP's target)
+    points_2: np.ndarray  # (k2, 3) map 2's (ICP's source)
+    counts: dict  # occupied_1, occupied_2, overlap_1, overlap_2 (point counts)
+
+
+class DenseStep(NamedTuple):
+    """``refine_dense``'s outcome."""
+
+    T_1_2: np.ndarray  # (4, 4) float64: the dense result when usable, else the start
+    info: dict  # JSON-ready: status (int Status code), converged, start_level, agreement, loss, ...
+    result: object  # AlignResult
+
+
+def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig,
+             timings: Timings | None = None) -> Registration:
+    """Thesis Alg. 1-3 on the host: the transform ``T_1_2`` (map 2's frame into map 1's) that
+    ``config.registration.refine`` finds from ``T_1_2_init`` ``(4, 4)`` float64.
+
+    ``timings``: seconds per stage are added to it (default: a new, discarded one).
+    Raises ``MergeError`` for empty clouds (``"empty"``), no overlap (``"no_overlap"``) or
+    failed ICP (``"icp_failed"``, ``"not_converged"`` per ``on_not_converged``)."""
+    timings = Timings() if timings is None else timings
+    clouds = occupied_clouds(m1, m2, timings)
+    refine = config.registration.refine
+    if refine == "none":
+        return register_none(clouds, T_1_2_init)
+    if refine == "dense":
+        return register_dense(m1, m2, clouds, T_1_2_init, config, timings)
+    if refine == "multi":
+        return register_multi(m1, m2, clouds, T_1_2_init, config, timings)
+    overlap = overlap_for_icp(clouds, T_1_2_init, config, m1.resolution, timings)
+    with timings.stage("icp") as stage:
+        result = stage.ready(reg.icp(overlap.points_2, overlap.points_1, T_1_2_init,
+                                     **icp_kwargs(config, m1.resolution)))
+    return register_icp(m1, m2, clouds, overlap, T_1_2_init, result, config, timings)
+
+
+def register_none(clouds: Clouds, T_1_2_init) -> Registration:
+    """``refine="none"``: the guess as is."""
+    counts = {"occupied_1": int(clouds.points_1.shape[0]), "occupied_2": int(clouds.points_2.shape[0])}
+    return Registration(T_1_2=T_1_2_init, converged=True, info=None, result=None, counts=counts,
+                        points_1=clouds.points_1, points_2=clouds.points_2)
+
+
+def register_dense(m1, m2, clouds: Clouds, T_1_2_init, config: MergeConfig, timings: Timings) -> Registration:
+    """``refine="dense"``: the gradient-based alignment of the occupancy fields only
+    (``refine_dense``), with ICP's point statistics measured at its result."""
+    warnings: list[str] = []
+    T_1_2, dense_info, result = refine_dense(m1, m2, T_1_2_init, timings, warnings)
+    with timings.stage("evaluate"):
+        stats = point_stats(clouds.points_1, clouds.points_2, T_1_2, config, m1.resolution)
+    info = {"converged": dense_info["converged"], "status": str(Status(dense_info["status"])),
+            "num_iterations": dense_info["num_iterations"], **stats, "dense": dense_info}
+    counts = {"occupied_1": int(clouds.points_1.shape[0]), "occupied_2": int(clouds.points_2.shape[0])}
+    return Registration(T_1_2=T_1_2, converged=info["converged"], info=info, result=result, counts=counts,
+                        points_1=clouds.points_1, points_2=clouds.points_2, warnings=tuple(warnings))
+
+
+def overlap_for_icp(clouds: Clouds, T_1_2_init, config: MergeConfig, resolution: float,
+                    timings: Timings) -> Overlap:
+    """The commonly mapped subsets under the guess (thesis Alg. 2; ``refine="multi"``: the
+    whole clouds, so that the search is not pre-cut by a poor guess), timed as ``overlap``.
+    Raises ``MergeError`` ``"empty"`` / ``"no_overlap"`` below ``min_overlap_points``."""
+    rc = config.registration
+    p1, p2 = clouds
+    for name, p in (("map 1", p1), ("map 2", p2)):
+        if p.shape[0] < rc.min_overlap_points:
+            raise MergeError(f"{name} has only {p.shape[0]} occupied voxels: nothing to register "
+                             "(use --refine none to merge with the guess as is)", "empty")
+    method = "none" if rc.refine == "multi" else rc.overlap
+    with timings.stage("overlap"):
+        q1, q2 = select_overlap(p1, p2, T_1_2_init, method, overlap_margin(config, resolution))
+    counts = {"occupied_1": int(p1.shape[0]), "occupied_2": int(p2.shape[0]),
+              "overlap_1": int(q1.shape[0]), "overlap_2": int(q2.shape[0])}
+    if min(q1.shape[0], q2.shape[0]) < rc.min_overlap_points:
+        raise MergeError(
+            f"no overlap: under the initial guess only {q1.shape[0]} points of map 1 and "
+            f"{q2.shape[0]} of map 2 lie in commonly mapped space (need "
+            f"{rc.min_overlap_points}); check the guess (x y z roll pitch yaw, radians) or "
+            f"try --refine multi", "no_overlap")
+    return Overlap(q1, q2, counts)
+
+
+def register_icp(m1, m2, clouds: Clouds, overlap: Overlap, T_1_2_init, result, config: MergeConfig,
+                 timings: Timings) -> Registration:
+    """``refine="icp"`` / ``"icp+dense"`` after ICP (``result``, an ``IcpResult`` with source =
+    map 2's overlap points): ``accept_icp``'s policy, then for ``"icp+dense"`` the dense
+    alignment (``dense_after_icp``); the transform made rigid (``se3.project_to_rigid``)."""
+    info = icp_info(result)
+    T_1_2, warnings = accept_icp(result, info, T_1_2_init, config)
+    if config.registration.refine == "icp+dense":
+        T_1_2, info = dense_after_icp(m1, m2, clouds, T_1_2, T_1_2_init, info, config, timings, warnings)
+    return Registration(T_1_2=se3.project_to_rigid(T_1_2), converged=info["converged"], info=info,
+                        result=result, counts=overlap.counts, points_1=overlap.points_1,
+                        points_2=overlap.points_2, warnings=tuple(warnings))
+
+
+# the top-level figures that the local step's result replaces when it is used
+_LOCAL_FIELDS = ("converged", "status", "num_iterations", "num_inliers", "rmse", "fitness", "correspondence_distance")
+
+
+def register_multi(m1, m2, clouds: Clouds, T_1_2_init, config: MergeConfig, timings: Timings) -> Registration:
+    """``refine="multi"``: candidates (``multi_candidates``), the pick by map agreement and
+    the local step (``rank_and_refine``), ICP's statistics measured at a pick born in the dense
+    alignment, ``accept_icp``'s policy; the transform made rigid."""
+    overlap = overlap_for_icp(clouds, T_1_2_init, config, m1.resolution, timings)
+    kw = icp_kwargs(config, m1.resolution)
+    q1, q2 = overlap.points_1, overlap.points_2
+    found = multi_candidates(m1, m2, q1, q2, T_1_2_init, config, kw, timings)
+    point_best = int(found.result.best_index)
+    pick = rank_and_refine(m1, m2, q1, q2, found.result, found.origin == "yaw_grid", config, kw,
+                           timings, found.problem, found.origin)
+    result = pick.result
+    info = {**icp_info(result.best), "best_index": int(result.best_index),
+            "num_hypotheses": int(np.asarray(result.hypotheses).shape[0]),
+            "num_basins": int(np.unique(np.asarray(result.basin)).size),
+            "point_best_index": point_best, "map_loss": [round(float(v), 5) for v in pick.map_loss],
+            "local": pick.info}
+    best = result.best
+    if pick.local is not None:  # the local step's result is used: its figures are reported
+        best = pick.local
+        local_fields = icp_info(best)
+        info.update({key: local_fields[key] for key in _LOCAL_FIELDS})
+    if not np.isfinite(info["rmse"]):  # a pick from the dense alignment has no ICP statistics
+        with timings.stage("evaluate"):
+            info.update(point_stats(q1, q2, best.T_target_source, config, m1.resolution))
+        info["stats_evaluated"] = True
+    T_1_2, warnings = accept_icp(best, info, T_1_2_init, config)
+    return Registration(T_1_2=se3.project_to_rigid(T_1_2), converged=info["converged"], info=info,
+                        result=result, counts=overlap.counts, points_1=overlap.points_1,
+                        points_2=overlap.points_2, warnings=tuple(warnings))
+
+
+def accept_icp(best, info: dict, T_1_2_init, config: MergeConfig) -> tuple[np.ndarray, list[str]]:
+    """The ICP status policy: ``(T_1_2 (4, 4) float64, warnings)`` from ICP's result ``best``
+    (``info``: its figures, ``icp_info``). Too few inliers or a non-finite transform raise
+    ``MergeError("icp_failed")``; a result that did not converge follows
+    ``registration.on_not_converged`` (``"error"`` raises ``MergeError("not_converged")``,
+    ``"use_initial"`` returns the guess, ``"warn"`` the result), with a warning."""
+    rc = config.registration
+    T_icp = np.asarray(best.T_target_source, np.float64)
+    if Status(int(best.status)) is Status.TOO_FEW_INLIERS or not np.all(np.isfinite(T_icp)):
+        raise MergeError(
+            f"ICP failed: only {info['num_inliers']} correspondences within "
+            f"{info['correspondence_distance']:.3g} m (need {rc.min_inliers}); the guess is "
+            f"probably too far off: try --refine multi or a better guess", "icp_failed")
+    if info["converged"]:
+        return T_icp, []
+    msg = (f"ICP did not converge within {info['num_iterations']} iterations (rmse "
+           f"{info['rmse']:.4f} m, correspondence distance {info['correspondence_distance']:.3g} m)")
+    if rc.on_not_converged == "error":
+        raise MergeError(msg + "; raise registration.max_iterations or set "
+                         "on_not_converged = \"warn\"", "not_converged")
+    if rc.on_not_converged == "use_initial":
+        return np.asarray(T_1_2_init, np.float64), [msg + "; merged with the initial guess instead"]
+    return T_icp, [msg + "; its last transform is used"]
+
+
+def dense_after_icp(m1, m2, clouds: Clouds, T_icp, T_1_2_init, info: dict, config: MergeConfig,
+                    timings: Timings, warnings: list[str]) -> tuple[np.ndarray, dict]:
+    """``refine="icp+dense"``: the dense alignment from ICP's transform ``T_icp``, from the
+    level of ICP's last correspondence distance on when ICP converged; if its result is not
+    usable, from the initial guess; if that fails too, ``T_icp`` is kept and both failures go
+    to ``warnings``. Returns ``(T_1_2, info with the dense figures under "dense")``."""
+    retry: list[str] = []
+    within = info["correspondence_distance"] if info["converged"] else None
+    T_1_2, dense_info, _ = refine_dense(m1, m2, T_icp, timings, retry, within_m=within)
+    if not Status(dense_info["status"]).usable:
+        T_1_2, dense_info, _ = refine_dense(m1, m2, T_1_2_init, timings, retry)
+        dense_info["started_from"] = "initial guess (dense from the ICP result failed)"
+        if not Status(dense_info["status"]).usable:
+            T_1_2 = T_icp
+            warnings.extend(retry)
+    if Status(dense_info["status"]).usable:  # its result is used: the point statistics there
+        with timings.stage("evaluate"):
+            dense_info.update(point_stats(clouds.points_1, clouds.points_2, T_1_2, config, m1.resolution))
+    return T_1_2, {**info, "dense": dense_info}
+
+
+def refine_dense(m1, m2, T_start, timings: Timings, warnings: list[str],
+                 within_m: float | None = None) -> DenseStep:
+    """``registration.align_dense`` from ``T_start`` (timed as ``dense``).
+
+    ``within_m`` [m]: the start is known to lie about this close to the answer (ICP's last
+    correspondence distance), so the levels with coarser cells are skipped. Its result is used
+    when its status is usable (``Status.usable``); otherwise the start is kept and a warning
+    appended to ``warnings``."""
+    start_level = 0
+    if within_m is not None and np.isfinite(within_m):
+        fits = m1.resolution * 2.0 ** np.asarray(reg.default_levels(m1.resolution)) <= within_m * (1 + 1e-6)
+        start_level = int(np.argmax(fits)) if fits.any() else len(fits) - 1  # coarse to fine
+    with timings.stage("dense") as stage:
+        r = stage.ready(reg.align_dense(m1, m2, np.asarray(T_start, np.float64), start_level=start_level))
+    status = Status(int(r.status))
+    info = {"status": int(status), "converged": status is Status.CONVERGED, "start_level": start_level,
+            "restarted": bool(np.asarray(r.restarted)),
+            "agreement": float(np.asarray(r.agreement)), "loss": float(np.asarray(r.loss)),
+            "num_iterations": int(np.asarray(r.num_iterations))}
+    if status.usable:
+        return DenseStep(np.asarray(r.T_1_2, np.float64), info, r)
+    warnings.append(f"dense alignment failed (status {int(status)}, agreement {info['agreement']:.2f}); "
+                    "the previous transform is kept")
+    return DenseStep(np.asarray(T_start, np.float64), info, r)
