@@ -8,19 +8,20 @@ fusion across depths and differentiable ICP.
 from importlib.metadata import PackageNotFoundError, version as _version
 
 from .examples import example_map
-from .fusion import FuseReport, fuse, fuse_many
+from .fusion import FuseReport, FuseResult, fuse, fuse_many, fuse_many_with_report, fuse_with_report
 from .hostmem import reuse_host_memory
 from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
 from .insert import CapacityPlan, insert_point_cloud, insert_point_clouds
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
-from .pipeline import BatchResult, MergeConfig, MergeError, MergeReport, load_config, merge, merge_batch, merge_many
+from .pipeline import (BatchResult, MergeConfig, MergeError, MergeReport, Registration, load_config, merge,
+                       merge_batch, merge_many)
 from .registration import (
     AlignResult,
     align_dense,
     alignment_loss,
     evaluate_registration,
     IcpResult,
-    from_xyz_rpy,
+    Status,
     icp,
     icp_multi,
     occupied_points,
@@ -30,6 +31,7 @@ from .registration import (
     translation_error,
 )
 from .resample import sample, transform_map, transformed_bounds
+from .se3 import from_xyz_rpy
 from .tree import (
     apply_voxel_updates,
     clamp,
@@ -69,15 +71,18 @@ __all__ = [
     "BatchResult",
     "CapacityPlan",
     "FuseReport",
+    "FuseResult",
     "IcpResult",
     "Leaves",
     "MapFormatError",
     "MergeConfig",
     "MergeError",
     "MergeReport",
+    "Registration",
     "OccupancyMap",
     "OccupancyParams",
     "Scan",
+    "Status",
     "align_dense",
     "alignment_loss",
     "apply_voxel_updates",
@@ -94,6 +99,8 @@ __all__ = [
     "from_xyz_rpy",
     "fuse",
     "fuse_many",
+    "fuse_many_with_report",
+    "fuse_with_report",
     "icp",
     "icp_multi",
     "insert_point_cloud",

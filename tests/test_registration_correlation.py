@@ -8,7 +8,6 @@ origin and 1 m: the truth is metres from every hypothesis of the yaw grid.
 
 from __future__ import annotations
 
-import importlib
 import math
 import types
 from functools import lru_cache
