@@ -614,9 +614,31 @@ def test_fused_bt_writer_matches_prune_then_encode():
             codes, depths, lo = codes[keep], depths[keep], lo[keep]
         m = from_leaves(codes, depths, lo, 0.1)
         c, d, v = max_likelihood_prune(codes, depths, lo)
-        body, nodes = _preorder.encode_bt(c, d.astype(np.uint8), v >= 0)
+        body, nodes = encode_bt_reference(c, d.astype(np.uint8), v >= 0)
         assert to_bytes(m, binary=True) == body.tobytes()
         assert read_header_size(to_bytes(m, binary=True, header=True)) == nodes
+
+
+def encode_bt_reference(codes, depths, occupied) -> tuple[np.ndarray, int]:
+    """``.bt`` body of the tree over the given leaves (``depth >= 1``), as is (no maximum
+    likelihood, no pruning): per *inner* node in pre-order two bytes of 2-bit child states
+    (``writeBinaryNode``: 0 unknown, 1 free leaf, 2 occupied leaf, 3 inner; child j at bits
+    2(j%4) of byte j//4). Returns (bytes, nodes). The reference for the writer's fused
+    ``_preorder.encode_bt_pruned``."""
+    if codes.size == 0:
+        return np.zeros(0, np.uint8), 0
+    lay = _preorder.layout(codes, depths)
+    total = lay.depth.size
+    state = np.full(total, 3, dtype=np.uint16)
+    state[lay.leaf_record] = np.where(occupied, 2, 1).astype(np.uint16)
+    word = np.zeros(total, dtype=np.uint16)
+    for kids, starts, parents, ci in _preorder.levels(lay):
+        contrib = state[kids] << (2 * ci.astype(np.uint16))
+        word[parents] = np.bitwise_or.reduceat(contrib, starts)
+    is_leaf = np.zeros(total, dtype=bool)
+    is_leaf[lay.leaf_record] = True
+    inner = word[~is_leaf]
+    return inner.astype("<u2").view(np.uint8), total
 
 
 def tree_prune_host(codes, log_odds):

@@ -154,28 +154,6 @@ def encode_ot(codes, depths, log_odds, payload_extra: int = 0) -> tuple[np.ndarr
     return out.reshape(-1), total
 
 
-def encode_bt(codes, depths, occupied) -> tuple[np.ndarray, int]:
-    """``.bt`` body of the tree over the given leaves (``depth >= 1``), as is (no maximum
-    likelihood, no pruning): per *inner* node in pre-order two bytes of 2-bit child states
-    (``writeBinaryNode``: 0 unknown, 1 free leaf, 2 occupied leaf, 3 inner; child j at bits
-    2(j%4) of byte j//4). Returns (bytes, nodes). The writer uses the faster fused
-    ``encode_bt_pruned``; tests check one against the other."""
-    if codes.size == 0:
-        return np.zeros(0, np.uint8), 0
-    lay = layout(codes, depths)
-    total = lay.depth.size
-    state = np.full(total, 3, dtype=np.uint16)
-    state[lay.leaf_record] = np.where(occupied, 2, 1).astype(np.uint16)
-    word = np.zeros(total, dtype=np.uint16)
-    for kids, starts, parents, ci in levels(lay):
-        contrib = state[kids] << (2 * ci.astype(np.uint16))
-        word[parents] = np.bitwise_or.reduceat(contrib, starts)
-    is_leaf = np.zeros(total, dtype=bool)
-    is_leaf[lay.leaf_record] = True
-    inner = word[~is_leaf]
-    return inner.astype("<u2").view(np.uint8), total
-
-
 # ----------------------------------------------------------------------------- stream -> tree
 
 
