@@ -43,7 +43,7 @@ def test_readme_library_example_runs(tmp_path):
     first, library = _python_blocks()[:2]
     out = _run(first + "\n" + library, tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert (tmp_path / "report.json").exists()
+    assert (tmp_path / "report.json").exists() and (tmp_path / "lab.ot").stat().st_size > 0
 
 
 def test_readme_names_exist():
