@@ -81,3 +81,13 @@ def test_readme_benchmark_links_resolve():
 def test_benchmark_commands_name_existing_scripts():
     scripts = set(re.findall(r"benchmarks/(\w+\.py)", BENCHMARKS.read_text()))
     assert scripts and all((ROOT / "benchmarks" / s).exists() for s in scripts), scripts
+
+
+def test_design_sections_named_in_the_code_exist():
+    """Code that points to ``docs/design.md``, "Heading" names a section that is there."""
+    headings = set(re.findall(r"^#+ (.*)$", (ROOT / "docs" / "design.md").read_text(), re.M))
+    named = set()
+    for path in (ROOT / "octomerge_jax").rglob("*.py"):
+        for refs in re.findall(r'design\.md`*,\s*((?:"[^"]+"(?:\s*(?:,|and)\s*)?)+)', path.read_text()):
+            named |= set(re.findall(r'"([^"]+)"', refs))
+    assert named and named <= headings, named - headings
