@@ -1,14 +1,14 @@
 """Opt-in reuse of host memory between XLA:CPU calls (a process-wide glibc malloc setting).
 
-XLA:CPU allocates each call's scratch buffer with ``malloc`` and frees it afterwards: ~450 MB
-for a fuse of 3.9M leaves, ~30 MB for one of 0.26M. glibc serves blocks above 32 MB with a
-fresh ``mmap`` and unmaps them on ``free``, and XLA's worker threads allocate from arenas of
-their own that do the same, so every call faults its scratch pages in again: measured here
-125,000 minor faults and 0.2-0.3 s of a 0.5-0.6 s fuse of 3.9M leaves.
+XLA:CPU allocates each call's scratch buffer with ``malloc`` and frees it afterwards (hundreds
+of MB for a fuse of millions of leaves). glibc serves blocks above 32 MB with a fresh ``mmap``
+and unmaps them on ``free``, and XLA's worker threads allocate from arenas of their own that do
+the same, so every call faults its scratch pages in again (``docs/design.md``, "Host-memory
+reuse", has the figures).
 
 ``reuse_host_memory()`` makes glibc serve every thread from the main heap (one arena), never
 ``mmap`` and never trim it, so freed scratch stays in the process and the next call of the same
-size reuses it (2,000-16,000 faults, 0.31-0.35 s for that fuse). The costs: the process keeps
+size reuses it. The costs: the process keeps
 its peak heap until it exits (it is reused, not returned to the system), and threads share one
 malloc arena. Arenas are bound to threads when JAX's backend starts, so call it once at startup,
 before the first JAX computation (the ``octomerge`` CLI does); later it changes nothing and

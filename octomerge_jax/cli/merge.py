@@ -72,7 +72,7 @@ def register(subparsers) -> None:
     a.add_argument("--max-iterations", type=int, help="ICP iteration limit")
     a.add_argument("--coarse-matching", choices=COARSE_MATCHING_CHOICES,
                    help="ICP's coarse stages (default centroid; symmetric: both clouds downsampled, "
-                        "faster and on our benchmark more accurate)")
+                        "see docs/design.md, \"Centroid coarse matching\")")
     a.add_argument("--resample", action="store_true",
                    help="allow maps of different resolutions (map 2 is resampled onto map 1's grid)")
     a.add_argument("--strict", action="store_true", help="fail (exit 5) if ICP does not converge")

@@ -3,9 +3,7 @@
 Both OctoMap formats serialise the octree depth-first, pre-order, children visited 0..7
 (``OcTreeBaseImpl::writeNodesRecurs``, ``OccupancyOcTreeBase::writeBinaryNode``). A Python
 loop per node would take seconds on a million-leaf map, so both directions are whole-array
-NumPy passes (I/O is host work). Measured alternative: a jitted ``lax.scan`` over the
-records costs ~120 ns per record on CPU just to find the depths, about what the whole
-NumPy decode below costs.
+NumPy passes (I/O is host work; a jitted ``lax.scan`` over the records is no faster).
 
 **Writing** (leaves -> stream). Pre-order visits leaves in Morton order, so the stream is the
 sorted leaves with each leaf preceded by the ancestors it *opens*: the nodes on its path

@@ -4,9 +4,8 @@
 translation stays the guess's. When the maps overlap only partly, or the guess's yaw error
 is large (the guess rotates map 2 about a point metres from where the error was made), the
 right yaw starts metres off and whole-cloud ICP slides it along a corridor or turns it onto
-the other map's larger part (measured on the simulated office at 0.05 m from a 1.7 rad yaw
-error: the four candidates with the right yaw ended 2.1-2.9 m off; neither a longer ICP nor
-the dense alignment from them left the slide). This is the missing global step: for every
+the other map's larger part, and neither a longer ICP nor the dense alignment leaves such a
+slide. This is the missing global step: for every
 yaw ``theta_j`` of a fine grid (the guess's roll and pitch kept), map 2's cells are
 correlated with *signed* grids of map 1 over all translations at once (FFT products per yaw),
 and the best-scoring poses become the starts of the local refinement.

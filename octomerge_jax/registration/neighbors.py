@@ -16,8 +16,8 @@ so building and querying are plain sorts, scatters and gathers under ``jit``/``v
   distances agree to a relative ``2^-15``, the first slot) whenever ``overflow == 0``.
   Candidates farther than ``cell_size`` may be returned; callers filter by distance. By default
   in two phases: the 8 cells nearest to the query first, which hold every point within half a
-  cell of it, and the 27 only for the queries that this does not settle (same answers; near an
-  ICP solution ~1 % of them: 1.3-1.5x faster ICP on the benchmark pairs).
+  cell of it, and the 27 only for the queries that this does not settle (same answers; see
+  ``docs/design.md``, "Hashed-grid nearest neighbours, searched in two phases").
 
 No SciPy/KD-tree: the same code runs for one query set or ``vmap``-ed over many transforms.
 """
@@ -50,7 +50,7 @@ class HashGrid:
     rows ``base[l] .. base[l] + M_l`` (row ``base[l] + M_l`` is an always-empty sink) of:
 
     - ``xyz``: ``(3, R, K)`` float32 slot coordinates [m] (structure of arrays: one gather per
-      axis is ~3x faster on CPU than gathering ``(K, 3)`` blocks); empty slots hold ``1e7``.
+      axis); empty slots hold ``1e7``.
     - ``index``: ``(R, K)`` int32 row of each slot's point, ``-1`` if empty.
     - ``base``: ``(L,)`` int32 first row of each level; ``mask``: ``(L,)`` int32 ``M_l - 1``.
     - ``origin``, ``dims``: ``(L, 3)`` int32 cell bounding box of the points; ``dense``:
@@ -90,10 +90,8 @@ def level_table_sizes(capacity: int, cell_sizes) -> tuple[int, ...]:
     The finest level gets ``4 x capacity`` buckets: collision-free (a linear index) when the
     points' cells span at most that many, else hashed, and then cells sharing a bucket
     overflow when together they hold more than ``cell_capacity`` points (a cell holds up to 8
-    voxel centres at cell = 2 voxels). Measured with ``merge`` on the simulated maps: no
-    overflow at lab 0.1 m and office 0.05 m; 437 points dropped at lab 0.05 m (maps of
-    16.7k / 17.2k occupied voxels), eps_t still 0.016 m (``grid_overflow`` reports them).
-    A level ``r`` times coarser needs about ``r^2`` times fewer cells on surfaces, so it gets
+    voxel centres at cell = 2 voxels), which the grid's ``overflow`` and ICP's
+    ``grid_overflow`` report. A level ``r`` times coarser needs about ``r^2`` times fewer cells on surfaces, so it gets
     ``4 capacity / r^2`` (>= 256)."""
     sizes = np.asarray(cell_sizes, np.float64).reshape(-1)
     finest = float(np.min(sizes))
@@ -269,9 +267,8 @@ def _nearest_in_rows(xyz, index, rows, q, finite):
     float32 bits order as an int32; their low ``_slot_bits(K)`` bits (8 for ``K = 8``) are
     replaced by the slot's number, so candidates whose squared distances agree to a relative
     ``2^-15`` (~1.5e-5 in distance, 6 um at 0.4 m) count as tied and the first slot wins.
-    ``dist2`` is the exact minimum. Instead of a min and then a first-index argmax over the
-    distances: the nearest-neighbour query 1.1-1.35x faster inside a loop (ICP stage grids,
-    10k-180k queries). The 8- and 27-cell searches use the same bits and the same slot order,
+    ``dist2`` is the exact minimum (one reduction instead of a min and then a first-index
+    argmax over the distances). The 8- and 27-cell searches use the same bits and the same slot order,
     and the first phase settles a query only when every slot tied with its nearest lies in its
     8 cells, so the two agree. ``K > 37`` (more than 10 bits) uses the exact two-pass form."""
     d2 = 0.0
@@ -285,7 +282,7 @@ def _nearest_in_rows(xyz, index, rows, q, finite):
         key = (jax.lax.bitcast_convert_type(d2, jnp.int32) & ~((1 << bits) - 1)) | slot
         j = jnp.min(key, axis=(1, 2)) & ((1 << bits) - 1)
         best = jnp.min(d2, axis=(1, 2))
-    else:  # min, then the first slot attaining it (= argmin; XLA's CPU argmin reduction is ~2x slower)
+    else:  # min, then the first slot attaining it (= argmin)
         d2 = d2.reshape(b, rows.shape[1] * k)
         best = jnp.min(d2, axis=-1)
         j = jnp.argmax(d2 == best[:, None], axis=-1)

@@ -1,9 +1,9 @@
 """Simulated multi-robot mapping without ROS or Gazebo: trimesh scenes, depth sensors ray cast
 in JAX, robot trajectories and two-robot datasets with ground-truth transforms.
 
-Ray casting is brute force over triangles (``raycast.py``): for the built-in indoor scenes
-(~300-400 triangles) 300k rays take ~0.2 s on 2 CPU cores, so a grid/BVH does not pay here; the
-outdoor ``campus`` (~1900 triangles, 14,400 lidar rays per scan) simulates in about a minute.
+Ray casting is brute force over triangles (``raycast.py``): the built-in scenes have a few
+hundred (indoor) to about two thousand (the outdoor ``campus``) triangles, too few for a
+grid or BVH to pay.
 """
 
 from .box_room import scene_pair, surface_samples, voxel_centres
