@@ -120,14 +120,14 @@ def solver_table(res, levels, max_points, repeats):
     print("| solver | guesses | compile+1st [s] | steady [s] | loss | iterations per level | status |")
     print("|---|---|---|---|---|---|---|")
     m1, m2 = room_maps(res)
-    problem = dense.prepare_alignment(m1, m2, levels=levels, max_points=max_points)
+    problem = prepare_alignment(m1, m2, levels=levels, max_points=max_points)
     errors = [(0.3, -0.2, 0.0, 0.0, 0.0, 0.1), (0.1, 0.2, 0.0, 0.0, 0.0, -0.1), (0.2, 0.0, 0.1, 0.05, 0.0, 0.0),
               (-0.2, 0.1, 0.0, 0.0, 0.0, 0.15)]
     T0 = np.stack([guess(e) for e in errors])
     ends = []
     for solver in ("lbfgs", "jaxopt"):
         for T in (T0[0], T0):
-            r, first, steady = timed(lambda: dense.solve_alignment(problem, T, maxiter=20, solver=solver), repeats)
+            r, first, steady = timed(lambda: solve_alignment(problem, T, maxiter=20, solver=solver), repeats)
             if T.ndim == 2:
                 ends.append(r.T_1_2)
             print(f"| {solver} | {1 if T.ndim == 2 else len(T)} | {first:.1f} | {steady:.3f} | "

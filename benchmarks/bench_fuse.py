@@ -50,7 +50,6 @@ import time
 import _host_memory
 import _octomap_peer
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from octomerge_jax import map as omap

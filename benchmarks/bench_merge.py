@@ -40,70 +40,29 @@ import _host_memory
 import jax
 import numpy as np
 
-from octomerge_jax import tree
-from octomerge_jax.pipeline import transform_from_xyz_rpy
-from octomerge_jax.resample import transform_map
+from octomerge_jax.io import load, save
+from octomerge_jax.pipeline import MergeConfig, merge, merge_batch, transform_from_xyz_rpy
+from octomerge_jax.sim import make_two_robot_maps, small_room_map, small_room_voxels
 
 STAGES = ("load", "occupied_points", "overlap", "icp", "transform", "fuse", "save")
 
 
-# the room scene of tests/test_pipeline.py (T_TRUE, world_scene, robot_map there)
+# the small room of tests/test_pipeline.py (octomerge_jax.sim.small_room)
 T_TRUE = transform_from_xyz_rpy(0.35, -0.25, 0.0, 0.0, 0.0, math.pi / 4)  # T_1_2: a pi/4 yaw
 
 
-def _surface(lo, hi, res):
-    """Voxel centres on the faces of the box [lo, hi] [m]."""
-    axes = [np.arange(a + res / 2, b, res) for a, b in zip(lo, hi)]
-    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    lo, hi = np.asarray(lo), np.asarray(hi)
-    on = np.any((g - lo < res) | (hi - g < res), axis=1)
-    return g[on]
-
-
-def world_scene(res):
-    """(occupied centres, free centres) of a small room in the world (= map 1) frame."""
-    occ = [_surface((0, 0, 0), (4.0, 3.0, 2.0), res)]
-    for lo, hi in [((0.6, 0.5, 0.0), (1.2, 1.3, 0.8)), ((2.4, 1.6, 0.0), (3.0, 2.2, 1.2)),
-                   ((1.6, 0.3, 0.0), (1.9, 0.6, 1.6)), ((3.2, 0.4, 0.0), (3.6, 1.0, 0.5)),
-                   ((2.0, 0.0, 0.0), (2.1, 1.0, 2.0)), ((1.2, 2.0, 0.0), (2.2, 2.1, 1.5))]:
-        occ.append(_surface(lo, hi, res))
-    occ = np.unique(np.round(np.concatenate(occ) / res * 2).astype(np.int64), axis=0) * (res / 2)
-    axes = [np.arange(0.2 + res / 2, 3.8, 2 * res), np.arange(0.2 + res / 2, 2.8, 2 * res),
-            np.arange(1.4 + res / 2, 1.9, 2 * res)]
-    free = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    return occ, free
-
-
-def robot_map(occ, free, x_range, res, T_world_map=np.eye(4)):
-    """The part of the room with ``x_range[0] <= x < x_range[1]`` as an OccupancyMap in the
-    robot's map frame (``T_world_map`` maps its frame into the world)."""
-    keep_o = (occ[:, 0] >= x_range[0]) & (occ[:, 0] < x_range[1])
-    keep_f = (free[:, 0] >= x_range[0]) & (free[:, 0] < x_range[1])
-    centers = np.concatenate([occ[keep_o], free[keep_f]])
-    values = np.concatenate([np.full(keep_o.sum(), 2.0, np.float32), np.full(keep_f.sum(), -1.2, np.float32)])
-    m = tree.from_voxels(centers, values, res)
-    if np.allclose(T_world_map, np.eye(4)):
-        return m
-    return transform_map(m, np.linalg.inv(T_world_map), "nearest")
-
-
 def make_pair(res):
-    occ, free = world_scene(res)
-    m1 = robot_map(occ, free, (-1.0, 3.0), res)
-    m2 = robot_map(occ, free, (0.8, 9.0), res, T_world_map=T_TRUE)
+    voxels = small_room_voxels(res)
+    m1 = small_room_map((-1.0, 3.0), res, voxels=voxels)
+    m2 = small_room_map((0.8, 9.0), res, T_TRUE, voxels=voxels)
     return m1, m2, T_TRUE
 
 
 def guess(dyaw=0.1, dx=0.1):
-    from octomerge_jax.pipeline import transform_from_xyz_rpy
-
     return transform_from_xyz_rpy(0.35 + dx, -0.25 - 0.05, 0.0, 0.0, 0.0, math.pi / 4 + dyaw)
 
 
 def end_to_end(p1, p2, out, T_init, T_true):
-    from octomerge_jax.io import load, save
-    from octomerge_jax.pipeline import merge
-
     t0 = time.perf_counter()
     m1, m2 = load(p1), load(p2)
     t_load = time.perf_counter() - t0
@@ -116,7 +75,6 @@ def end_to_end(p1, p2, out, T_init, T_true):
 
 
 def bench_sizes(resolutions, repeats):
-    from octomerge_jax.io import save
 
     print("\n## End to end per stage (seconds; first call includes compilation)\n")
     print("| res [m] | leaves m1+m2 | merged | call | " + " | ".join(STAGES) + " | end to end | eps_r | eps_t |")
@@ -137,8 +95,6 @@ def bench_sizes(resolutions, repeats):
 
 
 def bench_batch(res, n_pairs):
-    from octomerge_jax.pipeline import merge_batch
-    from octomerge_jax.pipeline import merge
 
     m1, m2, T = make_pair(res)
     rng = np.random.default_rng(0)
@@ -167,8 +123,6 @@ def bench_batch(res, n_pairs):
 def read_back_from_bt(*maps):
     """The maps written to ``.bt`` files and read back, as a user's maps arrive (maximum
     likelihood, pruned)."""
-    from octomerge_jax.io import load, save
-
     with tempfile.TemporaryDirectory() as d:
         paths = [Path(d) / f"{i}.bt" for i in range(len(maps))]
         for m, path in zip(maps, paths):
@@ -180,9 +134,6 @@ CAMPUS_RUNS = (("icp", 1.0, 0.08), ("icp+dense", 1.0, 0.08), ("dense", 1.0, 0.08
 
 
 def bench_campus(res, repeats):
-    from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
-    from octomerge_jax.sim import make_two_robot_maps
-
     t0 = time.perf_counter()
     m1, m2, T = make_two_robot_maps("campus", res, yaw_2_rad=0.9, offset_2=(40.0, 25.0, 0.3), max_range=30.0)
     t_sim = time.perf_counter() - t0
@@ -215,10 +166,6 @@ GUESS_GRID = ([(yaw, 0.0, 0.0, (0.3, 0.2, 0.0)) for yaw in (0.5, 1.7, -2.6, 3.0,
 
 
 def bench_guess_grid(res, hypotheses):
-    from octomerge_jax.pipeline import MergeConfig
-    from octomerge_jax.pipeline import merge, transform_from_xyz_rpy
-    from octomerge_jax.sim import make_two_robot_maps
-
     cfg = MergeConfig().replace(registration={"refine": "multi", "hypotheses": hypotheses})
     print(f"\n## refine='multi', hypotheses={hypotheses!r}, from far guesses (lab / office at {res:g} m, from .bt)\n")
     print("| scene | yaw, roll, pitch [rad] | offset [m] | displacement before -> after [m] | right | s |")

@@ -146,8 +146,7 @@ def run_scene(scene, variants, rows, resolution, spacing, seed, from_demo=None):
             cfg = MergeConfig().replace(registration={"overlap": overlap, "refine": refine})
             t1 = time.perf_counter()
             try:
-                registration = register(m1, m2, G, cfg)
-                T, info = registration.T_1_2, registration.info
+                T = register(m1, m2, G, cfg).T_1_2
                 e_r, e_t = float(reg.rotation_error(T, T_true)), float(reg.translation_error(T, T_true))
                 ok = e_r < 0.25 and e_t < 0.9
                 mark = "" if ok else " ✗"

@@ -75,7 +75,6 @@ def _summary(out_dir):
 
 
 def test_manifest_in_process_resumable(manifest, capsys):
-    from octomerge_jax.cli.manifest import read_manifest, run_manifest  # moving there with the manifest runner
 
     d, path = manifest
     out = d / "out_local"
@@ -94,7 +93,6 @@ def test_manifest_in_process_resumable(manifest, capsys):
 
 
 def test_manifest_errors(tmp_path):
-    from octomerge_jax.cli.manifest import read_manifest, run_manifest  # moving there with the manifest runner
 
     p = tmp_path / "m.csv"
     p.write_text("map1,map2\na.bt,b.bt\n")
@@ -109,7 +107,6 @@ def test_manifest_errors(tmp_path):
 
 
 def test_manifest_on_dask_local_cluster(manifest):
-    from octomerge_jax.cli.manifest import read_manifest, run_manifest  # moving there with the manifest runner
 
     distributed = pytest.importorskip("distributed")
     d, path = manifest

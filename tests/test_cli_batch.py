@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import octomerge_jax as om
+from helpers import voxel_log_odds
 
 TIMEOUT_S = 600
 HEADER = "map1,map2,output,x,y,z,roll,pitch,yaw\n"
@@ -65,15 +66,6 @@ def summary(out):
         return {int(r["index"]): r for r in csv.DictReader(f)}
 
 
-def cells(m):
-    """{finest code: log-odds} of every voxel the map knows."""
-    L = m.leaves()
-    n = np.left_shift(1, 3 * (16 - L.depths.astype(np.int64)))
-    first = np.repeat(np.cumsum(n) - n, n)
-    codes = np.repeat(L.codes.astype(np.uint64), n) + (np.arange(int(n.sum())) - first).astype(np.uint64)
-    return dict(zip(codes.tolist(), np.repeat(L.log_odds, n).tolist()))
-
-
 def test_batch_with_bad_pairs_exits_6_and_records_each_pair(job, serial):
     r, out = serial
     assert r.returncode == 6, r.stderr
@@ -90,15 +82,15 @@ def test_batch_with_bad_pairs_exits_6_and_records_each_pair(job, serial):
     # identity guess, no refinement: the merged map is the log-odds sum where both know a
     # voxel (clamped), the one value elsewhere
     a, b = om.load(job / "maps" / "a.ot"), om.load(job / "maps" / "b.ot")
-    ca, cb = cells(a), cells(b)
+    ca, cb = voxel_log_odds(a), voxel_log_odds(b)
     lo, hi = np.float32(a.params.clamp_min_log_odds), np.float32(a.params.clamp_max_log_odds)
     ref = {k: float(np.clip(np.float32(ca[k]) + np.float32(cb[k]), lo, hi)) if k in ca and k in cb
            else ca.get(k, cb.get(k)) for k in ca.keys() | cb.keys()}
     merged = om.load(out / "ab.ot")
-    assert cells(merged) == ref
+    assert voxel_log_odds(merged) == ref
     assert int(rows[0]["leaves_merged"]) == merged.num_leaves
     # .bt keeps maximum likelihood: the same voxels, occupied where the sum is above threshold
-    ba = cells(om.load(out / "sub" / "ba.bt"))
+    ba = voxel_log_odds(om.load(out / "sub" / "ba.bt"))
     assert ba.keys() == ref.keys()
     assert all((ba[k] > 0) == (v > 0) for k, v in ref.items())
 

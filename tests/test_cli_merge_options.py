@@ -15,6 +15,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 import octomerge_jax as om
+from helpers import voxel_log_odds
 
 TIMEOUT_S = 600
 
@@ -39,24 +40,15 @@ def octomerge(d, *args):
                           capture_output=True, text=True, timeout=TIMEOUT_S, env=env)
 
 
-def cells(m):
-    """{finest code: log-odds} of every voxel the map knows."""
-    L = m.leaves()
-    n = np.left_shift(1, 3 * (16 - L.depths.astype(np.int64)))
-    first = np.repeat(np.cumsum(n) - n, n)
-    codes = np.repeat(L.codes.astype(np.uint64), n) + (np.arange(int(n.sum())) - first).astype(np.uint64)
-    return dict(zip(codes.tolist(), np.repeat(L.log_odds, n).tolist()))
-
-
 def test_rule_max_and_sum_of_a_map_with_itself(d):
     a = om.load(d / "a.ot")
     for rule in ("sum", "max"):
         r = octomerge(d, d / "a.ot", d / "a.ot", d / f"{rule}.ot", "--refine", "none", "--rule", rule, "-q")
         assert r.returncode == 0, r.stderr
-    ca = cells(a)
+    ca = voxel_log_odds(a)
     lo, hi = np.float32(a.params.clamp_min_log_odds), np.float32(a.params.clamp_max_log_odds)
     want_sum = {k: float(np.clip(np.float32(v) + np.float32(v), lo, hi)) for k, v in ca.items()}
-    got_sum, got_max = cells(om.load(d / "sum.ot")), cells(om.load(d / "max.ot"))
+    got_sum, got_max = voxel_log_odds(om.load(d / "sum.ot")), voxel_log_odds(om.load(d / "max.ot"))
     assert got_max == ca  # max(l, l) = l
     assert got_sum == want_sum  # l + l, clamped
     assert sum(got_sum[k] != got_max[k] for k in ca) > len(ca) // 2
@@ -74,7 +66,7 @@ def test_interpolation_nearest_equals_library_transform_then_fuse(d):
     for field in ("codes", "depths", "log_odds"):
         np.testing.assert_array_equal(getattr(got.leaves(), field), getattr(want.leaves(), field))
     trilinear = om.fuse(a, om.transform_map(b, T, "trilinear", chunk_bricks=64))
-    assert cells(trilinear) != cells(got)
+    assert voxel_log_odds(trilinear) != voxel_log_odds(got)
 
 
 SHIFT = (0.0, 0.05, 0.05)  # the guess: map 2's points half a voxel off map 1's grid

@@ -8,7 +8,6 @@ one capacity bucket and the whole file shares one set of compiled kernels.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 import math
 import tomllib
@@ -32,48 +31,21 @@ from octomerge_jax.pipeline import (
     transform_from_xyz_rpy,
 )
 from octomerge_jax.resample import transform_map
+from octomerge_jax.sim import small_room_map, small_room_voxels
 
 RES = 0.1
 T_TRUE = transform_from_xyz_rpy(0.35, -0.25, 0.0, 0.0, 0.0, math.pi / 4)  # T_1_2, thesis: pi/4 yaw
 
 
-def _surface(lo, hi, res):
-    """Voxel centres on the faces of the box [lo, hi] [m]."""
-    axes = [np.arange(a + res / 2, b, res) for a, b in zip(lo, hi)]
-    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    lo, hi = np.asarray(lo), np.asarray(hi)
-    on = np.any((g - lo < res) | (hi - g < res), axis=1)
-    return g[on]
-
-
 @lru_cache(maxsize=None)
 def world_scene(res: float = RES):
-    """(occupied centres, free centres) of a small room in the world (= map 1) frame."""
-    occ = [_surface((0, 0, 0), (4.0, 3.0, 2.0), res)]
-    for lo, hi in [((0.6, 0.5, 0.0), (1.2, 1.3, 0.8)), ((2.4, 1.6, 0.0), (3.0, 2.2, 1.2)),
-                   ((1.6, 0.3, 0.0), (1.9, 0.6, 1.6)), ((3.2, 0.4, 0.0), (3.6, 1.0, 0.5)),
-                   # partitions across x and y, so the overlap constrains every direction
-                   ((2.0, 0.0, 0.0), (2.1, 1.0, 2.0)), ((1.2, 2.0, 0.0), (2.2, 2.1, 1.5))]:
-        occ.append(_surface(lo, hi, res))
-    occ = np.unique(np.round(np.concatenate(occ) / res * 2).astype(np.int64), axis=0) * (res / 2)
-    axes = [np.arange(0.2 + res / 2, 3.8, 2 * res), np.arange(0.2 + res / 2, 2.8, 2 * res),
-            np.arange(1.4 + res / 2, 1.9, 2 * res)]
-    free = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    return occ, free
+    """(occupied centres, free centres) of the small room in the world (= map 1) frame."""
+    return small_room_voxels(res)
 
 
-def robot_map(x_range, res: float = RES, T_world_map=np.eye(4)):
-    """The part of the room with ``x_range[0] <= x < x_range[1]`` as an OccupancyMap in the
-    robot's map frame (``T_world_map`` maps its frame into the world)."""
-    occ, free = world_scene(res)
-    keep_o = (occ[:, 0] >= x_range[0]) & (occ[:, 0] < x_range[1])
-    keep_f = (free[:, 0] >= x_range[0]) & (free[:, 0] < x_range[1])
-    centers = np.concatenate([occ[keep_o], free[keep_f]])
-    values = np.concatenate([np.full(keep_o.sum(), 2.0, np.float32), np.full(keep_f.sum(), -1.2, np.float32)])
-    m = tree.from_voxels(centers, values, res)
-    if np.allclose(T_world_map, np.eye(4)):
-        return m
-    return transform_map(m, np.linalg.inv(T_world_map), "nearest")
+def robot_map(x_range, res: float = RES, T_world_map=None):
+    """The part of the room with ``x_range[0] <= x < x_range[1]`` in the robot's map frame."""
+    return small_room_map(x_range, res, T_world_map, voxels=world_scene(res))
 
 
 @lru_cache(maxsize=None)

@@ -9,7 +9,6 @@ its public face), ``dense``, ``correlation``, ``evaluate``, ``metrics``, ``rende
 """
 
 from ..se3 import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quaternion, to_xyz_rpy, transform_points
-from . import dense
 from ._icp import (COARSE_MATCHING, IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
                    icp_padded_stack, invert_result, kabsch, pad_points, pad_points_host, sequential_default,
                    stage_distances)

@@ -10,11 +10,12 @@ from .box_room import scene_pair, surface_samples, voxel_centres
 from .datasets import RobotRun, build_map, make_two_robot_maps, simulate_runs
 from .raycast import cast_rays, cast_rays_host, mesh_triangles
 from .scenes import Scene, campus, lab_room, make_scene, mesh_scene, office_floor
+from .small_room import small_room_map, small_room_voxels
 from .sensors import DepthCamera, SpinningLidar, kinect_axial_noise_std, scan
 from .trajectory import apply_odometry_drift, pose_from_xyz_rpy, poses_along_path, resample_path
 
 __all__ = [
-    "scene_pair", "surface_samples", "voxel_centres",
+    "scene_pair", "surface_samples", "voxel_centres", "small_room_map", "small_room_voxels",
     "RobotRun", "build_map", "make_two_robot_maps", "simulate_runs",
     "cast_rays", "cast_rays_host", "mesh_triangles",
     "Scene", "campus", "lab_room", "make_scene", "mesh_scene", "office_floor",

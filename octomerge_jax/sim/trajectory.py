@@ -11,7 +11,7 @@ import numpy as np
 
 from .. import se3
 
-__all__ = ["resample_path", "poses_along_path", "pose_from_xyz_rpy", "yaw_matrix",
+__all__ = ["resample_path", "poses_along_path", "pose_from_xyz_rpy",
            "apply_odometry_drift"]
 
 
