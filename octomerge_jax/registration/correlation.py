@@ -250,27 +250,40 @@ def correlation_search(target, source, T_1_2_init, *, cell: float | None = None,
     t = np.where(t > np.asarray(shape) - np.asarray(source_shape), t - np.asarray(shape), t)
     cand = sorted(((sc[j, p], j, t[j, p]) for j in range(num_yaws) for p in range(sc.shape[1])
                    if np.isfinite(sc[j, p])), key=lambda c: -c[0])
-    # greedy suppression in pose space: a pose within ``separation`` [m] of a chosen one
-    # (yaw difference x map 2's RMS radius + translation difference) adds nothing for ICP
     sep = 4.0 * cell if separation is None else float(separation)
+    chosen = _separated(cand, yaws, r_rms, cell, sep, int(num_hypotheses))
+    R = np.asarray([rotations[c[1]] @ T0[:3, :3] for c in chosen]).reshape(-1, 3, 3)
+    t_cells = np.asarray([np.asarray([h, h, 0], np.float64) + c[2] + lo1 for c in chosen]).reshape(-1, 3)
+    Ts = _poses(R, t_cells, centre, cell, float(q[:, 2].min()))
+    return CorrelationResult(Ts, np.asarray([c[0] for c in chosen]), yaws[[c[1] for c in chosen]], float(cell))
+
+
+def _separated(candidates, yaws, r_rms: float, cell: float, separation: float, num: int):
+    """Greedy suppression in pose space: the best ``num`` of ``candidates`` ``(score, yaw index
+    j, shift t (3,) cells)``, sorted best first, each at least ``separation`` [m] (yaw difference
+    x map 2's RMS radius ``r_rms`` + translation difference) from the better ones; a pose
+    closer than that to a chosen one adds nothing for ICP."""
     chosen = []
-    for score, j, tj in cand:
-        if any(_turn(yaws[j] - yaws[jj]) * r_rms + np.linalg.norm((tj - tt) * cell) < sep
+    for score, j, tj in candidates:
+        if any(_turn(yaws[j] - yaws[jj]) * r_rms + np.linalg.norm((tj - tt) * cell) < separation
                for _, jj, tt in chosen):
             continue
         chosen.append((score, j, tj))
-        if len(chosen) == int(num_hypotheses):
+        if len(chosen) == num:
             break
-    zmin = float(q[:, 2].min())
-    offset = np.asarray([h, h, 0], np.float64)
-    Ts = np.tile(np.eye(4), (len(chosen), 1, 1))
-    for n, (_, j, tj) in enumerate(chosen):
-        R = rotations[j] @ T0[:3, :3]
-        # a source point p -> q = Rz R0 (p - centre), q' = q - (0, 0, zmin) in source cell
-        # floor(q' / cell) + offset, which lands on map 1's cell (that) + t + lo1
-        Ts[n, :3, :3] = R
-        Ts[n, :3, 3] = -R @ centre + (offset + tj + lo1) * cell - np.asarray([0.0, 0.0, zmin])
-    return CorrelationResult(Ts, np.asarray([c[0] for c in chosen]), yaws[[c[1] for c in chosen]], float(cell))
+    return chosen
+
+
+def _poses(R, t_cells, centre, cell: float, zmin: float) -> np.ndarray:
+    """``T_1_2 (k, 4, 4)`` of the chosen poses: rotations ``R (k, 3, 3)`` and, per pose, the
+    map-1 cell ``t_cells (k, 3)`` that map 2's source cell 0 lands on. A source point ``p``
+    goes to ``q = R (p - centre)``, ``q' = q - (0, 0, zmin)`` in source cell ``floor(q' / cell)``
+    plus the offset already folded into ``t_cells``."""
+    Ts = np.tile(np.eye(4), (len(R), 1, 1))
+    for n in range(len(R)):
+        Ts[n, :3, :3] = R[n]
+        Ts[n, :3, 3] = -R[n] @ centre + t_cells[n] * cell - np.asarray([0.0, 0.0, zmin])
+    return Ts
 
 
 def _points(p, name):
