@@ -3,8 +3,8 @@
 XLA:CPU allocates each call's scratch buffer with ``malloc`` and frees it afterwards (hundreds
 of MB for a fuse of millions of leaves). glibc serves blocks above 32 MB with a fresh ``mmap``
 and unmaps them on ``free``, and XLA's worker threads allocate from arenas of their own that do
-the same, so every call faults its scratch pages in again (``docs/design.md``, "Host-memory
-reuse", has the figures).
+the same, so every call faults its scratch pages in again (figures: ``docs/design.md``,
+"Host-memory reuse").
 
 ``reuse_host_memory()`` makes glibc serve every thread from the main heap (one arena), never
 ``mmap`` and never trim it, so freed scratch stays in the process and the next call of the same
