@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 
+import octomerge_jax as om
 from octomerge_jax import fusion as F
 from octomerge_jax.fusion import _gaps, _many, _pair, _rules, _sizing
 from octomerge_jax import map as omap
@@ -591,3 +592,17 @@ def test_scanned_octomap_trees_against_octomap_updates(tmp_path):
     assert len(got) == ours.codes.size
     for center, depth, val in zip(ours.centers, ours.depths, ours.log_odds):
         assert got[(tuple(np.round(center / (res / 2)).astype(int)), int(depth))] == val
+
+
+def test_return_report_still_works_with_a_deprecation_warning():
+    """``fuse(..., return_report=True)`` (earlier releases) returns ``fuse_with_report``'s
+    ``FuseResult`` and warns; the plain call returns the map alone."""
+    m1, m2 = om.example_map(), om.transform_map(om.example_map(), np.asarray(om.from_xyz_rpy(0.1, 0, 0, 0, 0, 0)))
+    with pytest.warns(DeprecationWarning, match="fuse_with_report"):
+        merged, report = F.fuse(m1, m2, return_report=True)
+    ref = F.fuse_with_report(m1, m2)
+    assert tree.equal(merged, ref.map) and tree.equal(F.fuse(m1, m2), ref.map)
+    assert report.host() == ref.report.host()
+    with pytest.warns(DeprecationWarning, match="fuse_many_with_report"):
+        many = F.fuse_many([m1, m2], return_report=True)
+    assert isinstance(many, F.FuseResult) and tree.equal(many.map, ref.map)

@@ -56,6 +56,7 @@ the output gets the refinement's own power-of-two bucket (``_sizing``).
 
 from __future__ import annotations
 
+import warnings
 from typing import Sequence
 
 import jax.numpy as jnp
@@ -98,6 +99,13 @@ def _raise_on_overflow(result: FuseResult, capacity, maps, what: str) -> Occupan
     return result.map
 
 
+def _deprecated_report(result: FuseResult, what: str) -> FuseResult:
+    """The ``return_report=True`` path of earlier releases: the ``FuseResult`` with a warning."""
+    warnings.warn(f"{what}(..., return_report=True) is deprecated: call {what}_with_report(...), which returns "
+                  "FuseResult(map, report)", DeprecationWarning, stacklevel=3)
+    return result
+
+
 def fuse_with_report(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0, 1.0),
                      capacity: int | None = None, prune: bool = True,
                      gap_capacity: int | None = None) -> FuseResult:
@@ -115,7 +123,7 @@ def fuse_with_report(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, w
 
 def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0, 1.0),
          capacity: int | None = None, prune: bool = True,
-         gap_capacity: int | None = None) -> OccupancyMap:
+         gap_capacity: int | None = None, return_report: bool = False) -> OccupancyMap:
     """Fuse ``m2`` (already in ``m1``'s frame) into ``m1`` (thesis Alg. 8, §5.2.3 cases 1-4,
     eqs. 5.14-5.19).
 
@@ -137,6 +145,8 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
         with room for all when there are more; under ``jit``/``vmap`` room for all (every
         leaf, ``capacity`` cells: never short). A value that proves too small under ``jit``
         sets ``overflow``.
+      return_report: deprecated; ``True`` warns and returns ``fuse_with_report(...)``'s
+        ``FuseResult``. Call ``fuse_with_report`` instead.
 
     Returns the fused ``OccupancyMap`` (``capacity`` rows, or the planned bucket).
     Raises ``ValueError`` (host) for different resolutions, an unknown rule, a missing
@@ -144,6 +154,8 @@ def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0,
     """
     result = fuse_with_report(m1, m2, rule, weights=weights, capacity=capacity, prune=prune,
                               gap_capacity=gap_capacity)
+    if return_report:
+        return _deprecated_report(result, "fuse")
     return _raise_on_overflow(result, capacity, (m1, m2), "fuse")
 
 
@@ -168,7 +180,7 @@ def fuse_many_with_report(maps: Sequence[OccupancyMap], rule: str = "sum", *, we
 
 
 def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
-              capacity: int | None = None, prune: bool = True) -> OccupancyMap:
+              capacity: int | None = None, prune: bool = True, return_report: bool = False) -> OccupancyMap:
     """Fuse ``m`` maps (all in the first map's frame) in one pass (thesis Alg. 8 for m maps).
 
     All leaf boundaries are merged into one sorted list (a merge tree of the maps' sorted
@@ -188,6 +200,7 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
         first and laid out in its own bucket. Under ``jit``/``vmap`` pass it (the boundary
         lists then have twice each map's capacity, always enough).
       prune: as ``fuse``.
+      return_report: deprecated, as ``fuse``'s (use ``fuse_many_with_report``).
 
     Returns the fused ``OccupancyMap``.
     Raises ``ValueError`` (host) for no maps, different resolutions, an unknown rule, a
@@ -196,4 +209,6 @@ def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,
     """
     maps = list(maps)
     result = fuse_many_with_report(maps, rule, weights=weights, capacity=capacity, prune=prune)
+    if return_report:
+        return _deprecated_report(result, "fuse_many")
     return _raise_on_overflow(result, capacity, maps, "fuse_many")
