@@ -30,6 +30,7 @@ __all__ = [
     "cummin",
     "padding_rows",
     "float_bits",
+    "quarter_octave_capacity",
 ]
 
 MIN_CAPACITY = 256
@@ -117,9 +118,7 @@ def float_bits(x):
     return jax.lax.bitcast_convert_type(x.astype(jnp.float32), jnp.int32)
 
 
-# --- added for resample
-
-__all__ += ["quarter_octave_capacity"]
+# ----------------------------------------------------------------------------- list capacities
 
 
 def quarter_octave_capacity(n: int, minimum: int) -> int:

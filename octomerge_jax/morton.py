@@ -62,6 +62,8 @@ __all__ = [
     "merge_ranks",
     "merge_sorted",
     "points_to_keys",
+    "low_bit_masks", "code_less", "code_digit", "code_low_masks", "code_low_nonzero", "code_truncate",
+    "code_put_digit", "code_end", "code_digit_sum",
 ]
 
 
@@ -475,14 +477,11 @@ def merge_sorted(a, b):
     return tuple(jnp.where(from_a, x[ia], y[ib]) for x, y in zip(a, b))
 
 
-# --- added for fuse: two-word code arithmetic on word columns
+# ----------------------------------------------------------------------------- two-word code arithmetic on word columns
 # A code is (hi, lo) int32 words of 24 bits = 8 octal digits each; digit k (0 = finest level)
 # lives in lo for k < 8, in hi for 8 <= k < 16, and digit 16 (only for the end 2^48 of the
 # whole volume) is bit 24 of hi. Level indices k may be traced. Everything below is
 # elementwise and loop-free (XLA fuses it into one pass).
-
-__all__ += ["low_bit_masks", "code_less", "code_digit", "code_low_masks", "code_low_nonzero",
-            "code_truncate", "code_put_digit", "code_end", "code_digit_sum"]
 
 
 def _digit_position(k):

@@ -40,6 +40,7 @@ __all__ = [
     "se3_exp",
     "check_rigid",
     "project_to_rigid",
+    "check_rigid_transform",
 ]
 
 
@@ -278,9 +279,7 @@ def project_to_rigid(T) -> np.ndarray:
     return T
 
 
-# --- added for resample
-
-__all__ += ["check_rigid_transform"]
+# ----------------------------------------------------------------------------- host checks
 
 
 def check_rigid_transform(T, name: str = "T_dst_src") -> np.ndarray:

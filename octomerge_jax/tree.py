@@ -19,7 +19,7 @@ import numpy as np
 from . import morton
 from ._ops import bucket_capacity, cummax, cummin, cumsum, materialize, padding_rows, shift_down, shift_up
 from ._sort import lexsort_rows
-from .map import OccupancyMap, OccupancyParams, from_words
+from .map import OccupancyMap, OccupancyParams, from_leaves, from_words
 
 __all__ = [
     "lookup",
@@ -35,6 +35,7 @@ __all__ = [
     "apply_voxel_updates",
     "occupied_mask",
     "equal",
+    "coarsen",
 ]
 
 _D = morton.TREE_DEPTH
@@ -457,11 +458,7 @@ def from_voxels(centers, log_odds, resolution: float, depth: int = _D,
     return pruned.with_capacity(bucket_capacity(pruned.num_leaves))
 
 
-# --- added for dense: coarsening (the alignment pyramid and the correlation grids)
-
-from .map import from_leaves  # noqa: E402
-
-__all__ += ["coarsen"]
+# ----------------------------------------------------------------------------- coarsening
 
 
 def coarsen(m: OccupancyMap, k: int, capacity: int | None = None, *,
