@@ -9,11 +9,11 @@ Euler angles follow OctoMap's ``octomath::Pose6D(x, y, z, roll, pitch, yaw)`` /
 ``(u, x, y, z)`` order. Tangent vectors: ``so3_exp(w)`` takes a rotation vector ``w (..., 3)``
 [rad]; ``se3_exp(xi)`` takes ``xi (..., 6) = (v [m], omega [rad])``.
 
-Every function except ``check_rigid`` and ``project_to_rigid`` is written once against an
-array namespace ``xp``: ``jax.numpy`` by default (NumPy or JAX input, works under
-``jit``/``vmap``/``grad``, returns a JAX array in the input's float dtype, float32 unless the
-caller passes float64 with x64 enabled), or ``xp=numpy`` for float64 host arithmetic (ground
-truth, file formats, simulation poses), which needs no JAX.
+Every function except the host checks (``check_rigid``, ``check_rigid_transform``,
+``project_to_rigid``) is written once against an array namespace ``xp``: ``jax.numpy`` by
+default (NumPy or JAX input, works under ``jit``/``vmap``/``grad``, returns a JAX array in the
+input's float dtype, float32 unless the caller passes float64 with x64 enabled), or
+``xp=numpy`` for float64 host arithmetic (ground truth, file formats, simulation poses).
 """
 
 from __future__ import annotations
