@@ -162,7 +162,7 @@ class OccupancyMap:
         if capacity < n:
             raise ValueError(f"capacity {capacity} is smaller than the map's {n} leaves")
         return from_words(np.asarray(self.code)[:n], np.asarray(self.depth)[:n],
-                      np.asarray(self.log_odds)[:n], self.resolution, self.params, capacity)
+                          np.asarray(self.log_odds)[:n], self.resolution, self.params, capacity)
 
     def __repr__(self) -> str:  # the default would print whole arrays
         try:
@@ -209,7 +209,7 @@ def empty(resolution: float, params: OccupancyParams | None = None,
           capacity: int | None = None) -> OccupancyMap:
     """A map with no leaves (everything unknown)."""
     return from_words(np.zeros((0, 2), np.int32), np.zeros(0, np.int32), np.zeros(0, np.float32),
-                  resolution, params, capacity)
+                      resolution, params, capacity)
 
 
 def from_leaves(codes, depths, log_odds, resolution: float,

@@ -451,7 +451,7 @@ def from_voxels(centers, log_odds, resolution: float, depth: int = _D,
     hi = float(np.asarray(params.clamp_max_log_odds))
     sums = np.clip(sums.astype(np.float32), np.float32(lo), np.float32(hi))
     m = from_words(morton.split_codes(uniq), np.full(uniq.size, int(depth), np.int32), sums,
-               resolution, params, bucket_capacity(uniq.size))
+                   resolution, params, bucket_capacity(uniq.size))
     if not prune_result:
         return m
     pruned = prune(m)

@@ -14,8 +14,8 @@ import numpy as np
 
 from .. import registration as reg
 from ..map import OccupancyMap, bucket_capacity
-from ..registration import Status
-from .clouds import overlap_margin, select_overlap, usable
+from ..registration import Status, usable_mask
+from .clouds import overlap_margin, select_overlap
 from .config import MergeConfig
 from .timings import Timings
 
@@ -123,7 +123,7 @@ def dense_candidates(problem, hypotheses, start_level: int, timings: Timings,
         a = stage.ready(reg.solve_alignment(problem, np.asarray(hypotheses, np.float64),
                                             start_level=int(start_level)))
     status = np.asarray(a.status)
-    ok = usable(status)
+    ok = usable_mask(status)
     k = status.shape[0]
     nan = np.full(k, np.nan, np.float32)
     zero = np.zeros(k, np.int32)

@@ -1,6 +1,6 @@
 """The point clouds registration works on (thesis Alg. 1-2) and ICP's settings and figures:
 ``occupied_clouds``, ``select_overlap``, ``overlap_margin``, ``icp_kwargs``, ``icp_info``,
-``point_stats`` and ``usable`` (which solver statuses give a transform to use)."""
+and ``point_stats``."""
 
 from __future__ import annotations
 
@@ -15,18 +15,9 @@ from .config import MergeConfig
 from .timings import Timings
 
 __all__ = ["Clouds", "VOXEL_OVERLAP_VOXELS", "icp_info", "icp_kwargs", "occupied_clouds", "overlap_margin",
-           "point_stats", "select_overlap", "usable"]
+           "point_stats", "select_overlap"]
 
 VOXEL_OVERLAP_VOXELS = 3.0
-
-_USABLE = np.asarray([s for s in Status if s.usable], np.int32)
-
-
-def usable(status) -> np.ndarray:
-    """Whether each solver status code (any shape, ``Status`` values) gives a transform to use
-    (``Status.usable``: converged or at the iteration limit); bool array of that shape."""
-    return np.isin(np.asarray(status), _USABLE)
-
 
 class Clouds(NamedTuple):
     """The occupied-voxel centres of both maps (thesis Alg. 1), float32 [m], each in its map's frame."""

@@ -31,7 +31,8 @@ from .. import registration as reg
 from .. import se3
 from ..fusion import fuse_many_with_report, fuse_with_report
 from ..map import OccupancyMap, empty
-from ..resample import check_rigid_transform, sample, transform_map
+from ..resample import sample, transform_map
+from ..se3 import check_rigid_transform
 from ..tree import from_voxels
 from .config import MergeConfig, validate
 from .refine import register
@@ -57,7 +58,7 @@ def transform_from_xyz_rpy(x: float = 0.0, y: float = 0.0, z: float = 0.0, roll_
 
 
 def check_transform(T, name: str) -> np.ndarray:
-    """``T`` as a rigid ``(4, 4)`` float64 (``resample.check_rigid_transform``); raises
+    """``T`` as a rigid ``(4, 4)`` float64 (``se3.check_rigid_transform``); raises
     ``MergeError("transform")`` naming ``name`` otherwise."""
     try:
         return check_rigid_transform(T, name)

@@ -12,9 +12,9 @@ import numpy as np
 
 from .. import registration as reg
 from ..map import OccupancyMap
-from ..registration import Status
+from ..registration import Status, usable_mask
 from .candidates import dense_candidates, level_near
-from .clouds import overlap_margin, select_overlap, usable
+from .clouds import overlap_margin, select_overlap
 from .config import MergeConfig
 from .timings import Timings
 
@@ -67,7 +67,7 @@ def rank_by_map_agreement(m1: OccupancyMap, m2: OccupancyMap, result, *, problem
     T = np.asarray(cands.T_target_source, np.float64)
     problem = reg.prepare_alignment(m1, m2) if problem is None else problem
     loss, plausible = scores_and_plausible(problem, T, min_overlap, min_agreement)
-    ok = usable(cands.status) & np.isfinite(loss)
+    ok = usable_mask(cands.status) & np.isfinite(loss)
     if among is not None:
         ok &= np.asarray(among, bool)
     if not ok.any():

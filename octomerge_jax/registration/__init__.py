@@ -22,11 +22,11 @@ from .neighbors import HashGrid, any_within, build_grid, build_grids, nearest
 from .overlap import Overlap, overlap
 from .points import occupied_points
 from .rendezvous import lift_2d, relative_pose_2d, relative_pose_3d, rendezvous_transform, rendezvous_transform_2d
-from .status import Status
+from .status import Status, usable_mask
 
 __all__ = [
     # status
-    "Status",
+    "Status", "usable_mask",
     # clouds and overlap (Alg. 1, 2)
     "occupied_points", "Overlap", "overlap",
     # ICP (Alg. 3)

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Status"]
+import numpy as np
+
+__all__ = ["Status", "usable_mask"]
 
 
 class Status(enum.IntEnum):
@@ -46,3 +48,9 @@ _MESSAGES = {
     Status.LOW_OVERLAP: "too little commonly known space at the result to judge the alignment",
     Status.NOT_FINITE: "the solve produced non-finite values",
 }
+
+
+def usable_mask(status, *, xp=np):
+    """Elementwise ``Status.usable`` of status codes ``status`` (any shape, int): a bool array
+    of that shape. ``xp``: ``numpy`` (host) or ``jax.numpy`` (inside ``jit``)."""
+    return xp.isin(status, xp.asarray([int(s) for s in Status if s.usable]))

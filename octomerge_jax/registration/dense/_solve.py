@@ -32,8 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...map import OccupancyMap
-from ...resample import check_rigid_transform
-from ..status import Status
+from ...se3 import check_rigid_transform
+from ..status import Status, usable_mask
 from ._jaxopt import minimize_jaxopt
 from ._lbfgs import minimize
 from ._loss import fine_scores, pair_loss
@@ -304,7 +304,7 @@ def align_dense(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, *, levels=None,
 def best_result(results: AlignResult) -> AlignResult:
     """From a batched ``AlignResult`` (leading ``k``), the one with the lowest final loss,
     preferring candidates whose status is usable (converged or max-iterations) over failures."""
-    ok = (results.status == int(Status.CONVERGED)) | (results.status == int(Status.MAX_ITERATIONS))
+    ok = usable_mask(results.status, xp=jnp)
     key = jnp.where(ok, results.loss, results.loss + 10.0)
     key = jnp.where(jnp.isfinite(key), key, jnp.inf)
     i = jnp.argmin(key)
