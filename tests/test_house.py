@@ -12,7 +12,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "octomerge_jax"
 
 # lowest first; a module may import its own layer and the ones below
 LAYERS = [
-    ("core", ["_ops", "_sort", "_fileutil", "types", "se3", "morton", "map", "tree", "hostmem"]),
+    ("core", ["_ops", "_sort", "_fileutil", "types", "se3", "morton", "map", "tree", "hostmem", "budget"]),
     ("kernels", ["updates", "insert", "resample", "fusion"]),
     ("side", ["io", "sim", "examples"]),
     ("solvers", ["registration"]),

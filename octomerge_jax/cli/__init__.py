@@ -16,6 +16,7 @@ from pathlib import Path
 import jax
 
 from .. import __version__
+from ..budget import MemoryBudgetError
 from ..hostmem import reuse_host_memory
 from ._common import CliError
 
@@ -79,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     except CliError as err:
         print(f"octomerge {args.command}: error: {err}", file=sys.stderr)
         return err.exit_code
-    except (ValueError, FileNotFoundError, PermissionError, IsADirectoryError) as err:
+    except (ValueError, FileNotFoundError, PermissionError, IsADirectoryError,
+            MemoryBudgetError) as err:
         print(f"octomerge {args.command}: error: {err}", file=sys.stderr)
         return 1
 
