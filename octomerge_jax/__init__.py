@@ -43,6 +43,8 @@ from .tree import (
     to_max_likelihood,
     update_points,
 )
+# --- bags
+from .io.bags import BagMap, read_bag
 
 # Heavier parts (trimesh scenes, scan readers) load on first use, keeping `import` fast.
 _LAZY = {
@@ -130,4 +132,7 @@ __all__ = [
     "translation_error",
     "update_points",
     "write_scan_graph",
+    # --- bags
+    "BagMap",
+    "read_bag",
 ]

@@ -1,4 +1,4 @@
-"""``octomerge build SCANS OUT``: build a map from scans, like OctoMap's ``graph2tree``."""
+"""``octomerge build SCANS OUT``: build a map from scans (files or a ROS bag), like OctoMap's ``graph2tree``."""
 
 from __future__ import annotations
 
@@ -8,21 +8,32 @@ from pathlib import Path
 import numpy as np
 
 from .._fileutil import check_not_input
-from ..insert import insert_point_clouds
+from ..insert import CapacityPlan, insert_point_clouds
 from ..io import save
+from ..io.bags import DEFAULT_MAX_POSE_GAP_S, is_bag, read_bag_scans
 from ..io.scans import Scan, read_scans
 from ..map import empty
 from ._common import CliError
+from .progress import Progress, show_bars
 
 EPILOG = """examples:
   octomerge build run1.graph robot1.bt --res 0.05
   octomerge build scans.log robot1.ot --res 0.1 --max-range 4.5
   octomerge build cloud.pcd cloud.bt --res 0.05 --origin 0 0 0.5
+  octomerge build run1.bag run1.bt --cloud-topic /points --pose-topic /odom --res 0.1
+  octomerge build run1_ros2/ run1.bt --cloud-topic /velodyne_points --max-range 30   # poses from /tf
 
 SCANS: an OctoMap ScanGraph (.graph), a plain log (.dat/.log/.txt: 'NODE x y z roll pitch
 yaw' lines followed by 'x y z' points), or one point cloud (.ply/.pcd/.xyz) whose sensor
 sits at --origin. Every scan is inserted as OctoMap's insertPointCloud does (rays from the
 scan pose's position; free space along each ray, a hit at its end).
+
+A ROS bag (ROS 1 .bag, ROS 2 folder, .db3 or .mcap): the sensor_msgs/PointCloud2 clouds of
+--cloud-topic, each placed by the nav_msgs/Odometry or geometry_msgs/PoseStamped message of
+--pose-topic with the nearest stamp (an Odometry's child frame is joined to the cloud's frame
+through /tf_static or /tf), or without --pose-topic by the /tf + /tf_static chain from
+--fixed-frame (default: the root of the tree) to the cloud's frame. A cloud with no pose (or a
+dynamic /tf edge) within --max-pose-gap seconds of its stamp is skipped and counted.
 """
 
 
@@ -40,6 +51,15 @@ def register(subparsers) -> None:
                    help="sensor position for a single point cloud file (default 0 0 0)")
     p.add_argument("--batch", type=int, default=8, help="scans per update batch (default 8)")
     p.add_argument("--force", action="store_true", help="allow OUT to be the input file")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    g = p.add_argument_group("ROS bag input")
+    g.add_argument("--cloud-topic", metavar="T", help="sensor_msgs/PointCloud2 topic (required for a bag)")
+    g.add_argument("--pose-topic", metavar="T", help="nav_msgs/Odometry or geometry_msgs/PoseStamped topic "
+                   "(default: poses from /tf)")
+    g.add_argument("--fixed-frame", metavar="F", help="with /tf: the map's frame (default: the tf tree's root)")
+    g.add_argument("--max-pose-gap", type=float, default=DEFAULT_MAX_POSE_GAP_S, metavar="S",
+                   help=f"largest time [s] between a cloud and its pose (default {DEFAULT_MAX_POSE_GAP_S:g}: "
+                        "half the period of a 10 Hz lidar)")
     p.set_defaults(func=run)
 
 
@@ -49,7 +69,20 @@ def run(args) -> int:
     if not args.res > 0:
         raise CliError(f"--res must be positive, got {args.res}")
     check_not_input(args.output, [args.scans], args.force)
-    scans = read_scans(args.scans)
+    skipped = 0
+    if is_bag(args.scans):
+        if args.cloud_topic is None:
+            raise CliError(f"{args.scans}: a bag needs --cloud-topic (a sensor_msgs/PointCloud2 topic)", 2)
+        try:
+            got = read_bag_scans(args.scans, args.cloud_topic, args.pose_topic, fixed_frame=args.fixed_frame,
+                                 max_gap_s=args.max_pose_gap)
+        except ModuleNotFoundError as err:
+            raise CliError(str(err)) from None
+        scans, skipped = got.scans, got.skipped
+    elif args.cloud_topic or args.pose_topic or args.fixed_frame:
+        raise CliError(f"{args.scans}: --cloud-topic / --pose-topic / --fixed-frame apply to a ROS bag", 2)
+    else:
+        scans = read_scans(args.scans)
     if args.origin is not None:
         if len(scans) != 1:
             raise CliError("--origin applies to a single point cloud; the scan file has poses")
@@ -58,9 +91,19 @@ def run(args) -> int:
         scans = [Scan(scans[0].points - pose[:3, 3], pose, 0)]
     clouds = [s.world_points().astype(np.float32) for s in scans]
     origins = np.array([s.sensor_origin for s in scans]).reshape(-1, 3)
-    m = insert_point_clouds(empty(args.res), clouds, origins, args.max_range, batch_size=args.batch)
+    if args.batch < 1:
+        raise CliError(f"--batch must be >= 1, got {args.batch}", 2)
+    m, plan = empty(args.res), CapacityPlan()
+    for pts, o in zip(clouds, origins):
+        plan.reserve(pts, o, m.resolution, args.max_range)
+    bar = Progress(len(clouds), show_bars(args.quiet), desc="inserting", unit="scan")
+    for start in range(0, len(clouds), args.batch):  # the same map as one call over all scans
+        part = slice(start, start + args.batch)
+        m = insert_point_clouds(m, clouds[part], origins[part], args.max_range, batch_size=args.batch, plan=plan)
+        bar.update(n=len(clouds[part]))
+    bar.close()
     save(m, args.output)
     n_pts = sum(len(c) for c in clouds)
     print(f"wrote {args.output}: {len(scans)} scans, {n_pts} points, {m.num_leaves} leaves "
-          f"at {args.res:g} m")
+          f"at {args.res:g} m" + (f" ({skipped} clouds without a pose skipped)" if skipped else ""))
     return 0

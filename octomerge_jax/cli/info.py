@@ -8,12 +8,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import load, num_nodes, read_header
+from ..io import num_nodes, read_header
+from ..io.bags import is_bag
 from ._common import CliError
+from ._inputs import add_bag_options, load_map_inputs
 
 EPILOG = """examples:
   octomerge info room.bt
   octomerge info robot1.ot --json
+  octomerge info run1.bag --topic /octomap_full --stamp 1712345678.5
 """
 
 
@@ -24,32 +27,40 @@ def register(subparsers) -> None:
                     "OctoMap's size()), leaves per depth, occupied/free leaves and volume, "
                     "metric bounds of the known space, file size.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("map", type=Path, metavar="MAP", help="a .bt or .ot file")
+    p.add_argument("map", type=Path, metavar="MAP", help="a .bt or .ot file, or a ROS bag")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.add_argument("--lenient", action="store_true",
                    help="accept trailing bytes and a wrong header size, as OctoMap does for .ot")
+    add_bag_options(p)
     p.set_defaults(func=run)
 
 
-def summarize(path: Path, lenient: bool = False) -> dict:
-    """The facts ``info`` prints, as a JSON-able dict."""
-    if not path.is_file():
-        raise CliError(f"{path}: no such file")
-    header = read_header(path)
-    m = load(path, strict=not lenient)
+def summarize(path: Path, lenient: bool = False, args=None) -> dict:
+    """The facts ``info`` prints, as a JSON-able dict (for a bag: of the map ``args.topic`` /
+    ``args.stamp`` choose, with its topic, stamp, frame and payload size)."""
+    if is_bag(path):
+        (m, b), = load_map_inputs([path], args, strict=not lenient)
+        binary, tree_id, legacy, size, nbytes = b.binary, b.tree_id, False, None, b.payload_bytes
+    else:
+        if not path.is_file():
+            raise CliError(f"{path}: no such file")
+        header = read_header(path)
+        (m, _), = load_map_inputs([path], args, strict=not lenient)
+        binary, tree_id, legacy, size, nbytes = (header.binary, header.tree_id, header.legacy, header.size,
+                                                 path.stat().st_size)
     lv = m.leaves()
     occupied = np.asarray(m.is_occupied())[: m.num_leaves]
     volume = lv.sizes ** 3
     depth_counts = np.bincount(lv.depths, minlength=17)
     out = {
         "path": str(path),
-        "format": "bt (binary, maximum likelihood)" if header.binary else "ot (full log-odds)",
-        "tree_id": header.tree_id,
-        "legacy_header": header.legacy,
-        "file_bytes": path.stat().st_size,
+        "format": "bt (binary, maximum likelihood)" if binary else "ot (full log-odds)",
+        "tree_id": tree_id,
+        "legacy_header": legacy,
+        "file_bytes": nbytes,
         "resolution_m": m.resolution,
         "nodes": num_nodes(m),
-        "header_size": header.size,
+        "header_size": num_nodes(m) if size is None else size,
         "leaves": m.num_leaves,
         "leaves_per_depth": {str(d): int(c) for d, c in enumerate(depth_counts) if c},
         "occupied_leaves": int(occupied.sum()),
@@ -65,6 +76,8 @@ def summarize(path: Path, lenient: bool = False) -> dict:
         out["bounds_min_m"] = [float(v) for v in (lv.centers - half).min(axis=0)]
         out["bounds_max_m"] = [float(v) for v in (lv.centers + half).max(axis=0)]
         out["log_odds_range"] = [float(lv.log_odds.min()), float(lv.log_odds.max())]
+    if is_bag(path):
+        out.update(bag_topic=b.topic, bag_stamp_s=b.stamp_ns / 1e9, bag_frame_id=b.frame_id)
     return out
 
 
@@ -72,11 +85,12 @@ def _text(s: dict) -> str:
     def vec(v):
         return "-" if v is None else "(" + ", ".join(f"{x:.3f}" for x in v) + ")"
 
+    where = f" {s['bag_topic']} @ {s['bag_stamp_s']:.9f} s, frame {s['bag_frame_id']}" if "bag_topic" in s else ""
     lines = [
-        f"map:        {s['path']}",
+        f"map:        {s['path']}{where}",
         f"format:     {s['format']}, id {s['tree_id']}"
         + (" (legacy headerless)" if s["legacy_header"] else ""),
-        f"file size:  {s['file_bytes']:,} bytes",
+        f"{'payload:   ' if where else 'file size: '} {s['file_bytes']:,} bytes",
         f"resolution: {s['resolution_m']:g} m",
         f"nodes:      {s['nodes']:,} (OctoMap size(); header says {s['header_size']:,})",
         f"leaves:     {s['leaves']:,} ({s['occupied_leaves']:,} occupied, "
@@ -96,6 +110,6 @@ def _text(s: dict) -> str:
 
 
 def run(args) -> int:
-    s = summarize(args.map, lenient=args.lenient)
+    s = summarize(args.map, lenient=args.lenient, args=args)
     print(json.dumps(s, indent=2) if args.json else _text(s))
     return 0

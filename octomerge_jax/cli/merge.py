@@ -10,9 +10,12 @@ from pathlib import Path
 
 from .._fileutil import check_not_input
 from ..pipeline import COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, REFINE_CHOICES, MergeConfig, load_config
-from ..io import MapFormatError, load, save
+from ..io import save
+from ..io.bags import write_bag
 from ..pipeline import MergeError, icp_trace, merge, transform_from_xyz_rpy
 from ._common import CliError
+from ._inputs import add_bag_options, check_map_input, load_map_inputs
+from .progress import StageBar, show_bars
 from .plots import plot_icp_convergence, plot_map, plot_overlap
 
 # exit codes (also in the epilog)
@@ -29,6 +32,7 @@ EPILOG = """examples:
   octomerge merge a.bt b.bt out.bt --rpy 0 0 45 --degrees --refine multi --report r.json --figure icp.png
   octomerge merge a.bt b.bt out.bt --refine none --xyz 2 0 0            # trust the guess
   octomerge merge a.bt b.bt out.bt --refine multi --hypotheses correlation  # partial overlap, poor guess
+  octomerge merge r1.bag r2.bag out.bt --topic /octomap_full --out-bag merged.bag  # ROS bags in and out
 
 The guess T_1_2 maps map 2's frame into map 1's: x y z in metres, roll pitch yaw in radians
 (R = Rz(yaw) Ry(pitch) Rx(roll), as OctoMap's Pose6D). OUT is .bt (maximum likelihood) or .ot
@@ -46,8 +50,8 @@ def register(subparsers) -> None:
         description="Register map 2 to map 1 from an initial guess (occupied clouds, overlap, "
                     "ICP), resample map 2 into map 1's frame and fuse the log-odds (J. Jessup 2013).",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("in1", type=Path, metavar="IN1", help="map 1 (.bt/.ot): the reference frame")
-    p.add_argument("in2", type=Path, metavar="IN2", help="map 2 (.bt/.ot)")
+    p.add_argument("in1", type=Path, metavar="IN1", help="map 1 (.bt/.ot or a ROS bag): the reference frame")
+    p.add_argument("in2", type=Path, metavar="IN2", help="map 2 (.bt/.ot or a ROS bag)")
     p.add_argument("out", type=Path, metavar="OUT", help="merged map to write (.bt or .ot)")
     p.add_argument("pose", type=float, nargs="*", metavar="x y z roll pitch yaw",
                    help="initial guess in the thesis's positional order (6 numbers)")
@@ -83,7 +87,13 @@ def register(subparsers) -> None:
     o.add_argument("--map-figure", type=Path, metavar="PNG", help="merged map, occupancy-shaded (Fig. 7.7)")
     o.add_argument("--icp-figure", type=Path, metavar="PNG", help="ICP convergence per iteration")
     o.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
-    o.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    o.add_argument("--out-bag", type=Path, metavar="BAG",
+                   help="also write the merged map as one octomap_msgs/Octomap message (binary for a .bt OUT, "
+                        "full for .ot) in map 1's frame: BAG.bag is a ROS 1 bag, other names a ROS 2 bag folder")
+    o.add_argument("--out-bag-storage", choices=("mcap", "sqlite3"), default="mcap",
+                   help="storage of a ROS 2 --out-bag (default mcap)")
+    o.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors (no progress bar)")
+    add_bag_options(p)
     p.set_defaults(func=run)
 
 
@@ -132,9 +142,10 @@ def _check_output(out: Path, inputs, force: bool, what: str = "OUT"):
 
 def run(args) -> int:
     for p in (args.in1, args.in2):
-        if not p.is_file():
-            raise CliError(f"{p}: no such file")
+        check_map_input(p)
     _check_output(args.out, [args.in1, args.in2], args.force)
+    if args.out_bag is not None:
+        _check_out_bag(args.out_bag, [args.in1, args.in2, args.out], args.force)
     for extra in (args.report, args.figure, args.map_figure, args.icp_figure):
         if extra is not None:
             _check_output_side(extra, [args.in1, args.in2, args.out])
@@ -148,31 +159,45 @@ def run(args) -> int:
     except (ValueError, FileNotFoundError) as err:
         raise CliError(str(err)) from None
     t0 = time.perf_counter()
-    try:
-        m1 = load(args.in1)
-        m2 = load(args.in2)
-    except MapFormatError as err:
-        raise CliError(str(err)) from None
+    bar = StageBar(show_bars(args.quiet), "merge")
+    with bar.stage("load"):
+        (m1, b1), (m2, b2) = load_map_inputs([args.in1, args.in2], args)
     t_load = time.perf_counter() - t0
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a))
     say(f"map 1: {args.in1} ({m1.num_leaves:,} leaves, {m1.resolution:g} m)")
     say(f"map 2: {args.in2} ({m2.num_leaves:,} leaves, {m2.resolution:g} m)")
     try:
-        merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess), T_1_2_true=truth, config=cfg)
+        with bar.watch():
+            merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess), T_1_2_true=truth, config=cfg)
     except MergeError as err:
         raise CliError(str(err), _KIND_EXIT.get(err.kind, EXIT_INPUT)) from None
+    finally:
+        bar.close()
     t1 = time.perf_counter()
     save(merged, args.out)
+    if args.out_bag is not None:  # map 1's frame; the later input stamp (now if neither is a bag)
+        stamps = [b.stamp_ns for b in (b1, b2) if b is not None]
+        write_bag(args.out_bag, merged, binary=args.out.suffix.lower() == ".bt", frame_id=b1.frame_id if b1 else "map",
+                  stamps_ns=[max(stamps)] if stamps else None,
+                  storage=None if args.out_bag.suffix.lower() == ".bag" else args.out_bag_storage)
     report = report.with_timings(load=t_load, save=time.perf_counter() - t1)
     if args.report:
         report.to_json(args.report)
     write_figures(report, merged, args.figure, args.map_figure, args.icp_figure, cfg, truth)
     say(report.summary())
-    say(f"wrote {args.out} ({merged.num_leaves:,} leaves)"
-        + "".join(f", {p}" for p in (args.report, args.figure, args.map_figure, args.icp_figure) if p))
+    say(f"wrote {args.out} ({merged.num_leaves:,} leaves)" + "".join(
+        f", {p}" for p in (args.out_bag, args.report, args.figure, args.map_figure, args.icp_figure) if p))
     for w in report.warnings:
         print(f"octomerge merge: warning: {w}", file=sys.stderr)
     return 0
+
+
+def _check_out_bag(path: Path, inputs, force: bool):
+    check_not_input(path, inputs, force=False)
+    if path.exists() and not force:
+        raise CliError(f"{path} exists; pass --force to overwrite it")
+    if str(path.parent) and not path.parent.exists():
+        raise CliError(f"{path}: folder {path.parent} does not exist")
 
 
 def _check_output_side(path: Path, inputs):

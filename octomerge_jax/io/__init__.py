@@ -1,4 +1,4 @@
-"""Reading and writing maps: OctoMap ``.bt`` / ``.ot`` files and ``octomap_msgs`` payloads."""
+"""Reading and writing maps: OctoMap ``.bt`` / ``.ot`` files, ``octomap_msgs`` payloads and ROS bags."""
 
 from .errors import MapFormatError
 from .octree_format import (
@@ -13,6 +13,7 @@ from .octree_format import (
     to_bytes,
     to_message_fields,
 )
+from .bags import BagMap, read_bag
 
 __all__ = [
     "Header",
@@ -26,4 +27,6 @@ __all__ = [
     "save",
     "to_bytes",
     "to_message_fields",
+    "BagMap",
+    "read_bag",
 ]

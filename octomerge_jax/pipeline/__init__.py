@@ -11,7 +11,7 @@ from .merging import check_resolutions, merge, merge_many, resample_to_resolutio
 from .ranking import rank_by_map_agreement
 from .refine import register
 from .report import MergeError, MergeReport, Registration
-from .timings import Timings
+from .timings import Timings, stage_listener
 from .trace import icp_trace
 
 __all__ = [
@@ -21,4 +21,5 @@ __all__ = [
     "VOXEL_OVERLAP_VOXELS", "check_resolutions", "config_from_dict", "config_to_dict", "dumps_toml", "icp_trace",
     "load_config", "merge", "merge_batch", "merge_many", "overlap_margin", "point_stats", "rank_by_map_agreement",
     "register", "resample_to_resolution", "save_config", "transform_from_xyz_rpy", "validate",
+    "stage_listener",  # --- bags (progress)
 ]
