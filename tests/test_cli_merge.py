@@ -146,3 +146,36 @@ def test_demo_runs(tmp_path, capsys):  # the README's main job; minutes on 2 bus
     for f in ("merged.bt", "map1.bt", "map2.bt", "overlap_before_after.png", "merged_map.png"):
         assert (tmp_path / "demo" / f).is_file(), f
     assert "epsilon before ICP" in out and "epsilon after  ICP" in out
+
+
+# --- bags
+def test_merge_bags_in_and_out(files, tmp_path, capsys):
+    """Maps from a ROS 1 bag and a ROS 2 MCAP bag merge as the same maps from files do (same
+    compiled kernels as the test above), and --out-bag holds the merged map's leaves, in map 1's
+    frame, at the later input stamp."""
+    pytest.importorskip("rosbags")
+    from octomerge_jax.io.bags import read_bag, write_bag
+
+    a, b = load(files / "a.ot"), load(files / "b.ot")
+    write_bag(tmp_path / "a.bag", a, binary=False, topic="/robot1/octomap_full", stamps_ns=[7 * 10**9], frame_id="r1")
+    write_bag(tmp_path / "b_ros2", b, binary=False, topic="/robot2/octomap_full", stamps_ns=[5 * 10**9])
+    args = [*_guess_args(), "--refine", "none", "-q"]
+    assert main(["merge", str(files / "a.ot"), str(files / "b.ot"), str(tmp_path / "files.ot"), *args]) == 0
+    assert main(["merge", str(tmp_path / "a.bag"), str(tmp_path / "b_ros2"), str(tmp_path / "bags.ot"), *args,
+                 "--topic", "/robot1/octomap_full", "--topic", "/robot2/octomap_full",
+                 "--out-bag", str(tmp_path / "merged.bag")]) == 0
+    assert (tmp_path / "files.ot").read_bytes() == (tmp_path / "bags.ot").read_bytes()
+    (got,) = read_bag(tmp_path / "merged.bag")
+    assert (got.topic, got.frame_id, got.stamp_ns, got.binary) == ("/octomap_full", "r1", 7 * 10**9, False)
+    want = load(tmp_path / "bags.ot").leaves()
+    assert np.array_equal(got.map.leaves().codes, want.codes) and np.array_equal(got.map.leaves().log_odds, want.log_odds)
+    capsys.readouterr()
+    assert main(["merge", str(tmp_path / "a.bag"), str(tmp_path / "b_ros2"), str(tmp_path / "x.ot"), *args,
+                 "--topic", "/robot1/octomap_full"]) == 1  # b_ros2 has no such topic
+    assert main(["merge", str(files / "a.ot"), str(files / "b.ot"), str(tmp_path / "y.ot"), *args,
+                 "--topic", "/t"]) == 2  # --topic without a bag input
+    assert main(["merge", str(tmp_path / "a.bag"), str(tmp_path / "b_ros2"), str(tmp_path / "z.ot"), *args,
+                 "--out-bag", str(tmp_path / "merged.bag")]) == 1  # --out-bag exists, no --force
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 3 and "no topic /robot1/octomap_full" in err[0] and "applies to bag inputs" in err[1], err
+    assert "merged.bag exists" in err[2]

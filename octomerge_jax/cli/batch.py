@@ -8,6 +8,7 @@ from pathlib import Path
 from ..pipeline import REFINE_CHOICES, MergeConfig, load_config
 from ._common import CliError
 from .manifest import run_manifest
+from .progress import show_bars
 
 EPILOG = """manifest (CSV with a header; inputs relative to the manifest, outputs to --out-dir):
   map1,map2,output,x,y,z,roll,pitch,yaw
@@ -46,7 +47,8 @@ def register(subparsers) -> None:
     p.add_argument("--no-resume", action="store_true", help="redo pairs whose output exists")
     p.add_argument("--refine", choices=REFINE_CHOICES)
     p.add_argument("--config", type=Path, metavar="FILE", help="TOML/JSON settings (octomerge dump-config)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-progress", "-q", "--quiet", action="store_true", dest="no_progress",
+                   help="no progress bar (there is none when stderr is not a terminal)")
     p.set_defaults(func=run)
 
 
@@ -60,7 +62,7 @@ def run(args) -> int:
         if args.refine:
             cfg = cfg.replace(registration={"refine": args.refine})
         rows = run_manifest(args.manifest, args.out_dir, config=cfg, workers=args.workers,
-                            scheduler=args.scheduler, progress=not args.no_progress,
+                            scheduler=args.scheduler, progress=show_bars(args.no_progress),
                             resume=False if args.no_resume else None)
     except (ValueError, FileNotFoundError) as err:
         raise CliError(str(err)) from None

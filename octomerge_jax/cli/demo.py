@@ -20,6 +20,7 @@ from ..pipeline import merge, transform_from_xyz_rpy
 from ._common import CliError
 from .merge import write_figures
 from .plots import plot_merge_comparison
+from .progress import StageBar, show_bars
 
 EPILOG = """examples:
   octomerge demo                                  # writes ./octomerge-demo/
@@ -54,6 +55,7 @@ def register(subparsers) -> None:
     p.add_argument("--refine", choices=REFINE_CHOICES, help="refinement (default icp)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures (faster)")
     p.add_argument("--config", type=Path, metavar="FILE", help="TOML/JSON settings (octomerge dump-config)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
@@ -92,7 +94,10 @@ def run(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     print(f"simulating two robots in the {d.scene} scene at {d.resolution:g} m ...", flush=True)
-    m1, m2, T_true = make_two_robot_maps(d.scene, d.resolution, spacing=d.spacing or None, seed=d.seed)
+    bar = StageBar(show_bars(args.quiet), "demo")
+    with bar.stage("simulate"):
+        m1, m2, T_true = make_two_robot_maps(d.scene, d.resolution, spacing=d.spacing or None, seed=d.seed)
+    bar.close()
     t_sim = time.perf_counter() - t0
     print(f"  map 1: {m1.num_leaves:,} leaves, map 2: {m2.num_leaves:,} leaves ({t_sim:.1f} s)")
     save(m1, out / "map1.bt")
@@ -100,7 +105,10 @@ def run(args) -> int:
     T_init = perturbed_guess(T_true, d.error_xyz, d.error_rpy_rad)
     print(f"merging from a guess off by {list(d.error_xyz)} m and rpy {list(d.error_rpy_rad)} rad "
           f"({cfg.registration.refine}) ...", flush=True)
-    merged, report = merge(m1, m2, T_init, T_1_2_true=T_true, config=cfg)
+    bar = StageBar(show_bars(args.quiet), "merge")
+    with bar.watch():
+        merged, report = merge(m1, m2, T_init, T_1_2_true=T_true, config=cfg)
+    bar.close()
     save(merged, out / "merged.bt")
     report = report.with_timings(simulate=t_sim)
     report.to_json(out / "report.json")

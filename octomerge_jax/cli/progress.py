@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import threading
 
 from tqdm import tqdm
 
@@ -49,12 +50,20 @@ class StageBar:
     """A bar over the named stages of one command (``total`` of them if known): each stage
     shows its name while it runs and counts when done. ``watch()`` adds the stages the
     pipeline times (``pipeline.stage_listener``: occupied points, correlation, icp, transform,
-    fuse, ...). ``enabled=False`` does nothing."""
+    fuse, ...). The elapsed time is redrawn every second, so a long stage does not look stuck.
+    ``enabled=False`` does nothing."""
 
     def __init__(self, enabled: bool, desc: str, total: int | None = None):
         self.bar = tqdm(total=total, desc=desc, unit="stage", file=sys.stderr, dynamic_ncols=True,
                         bar_format="{desc}: {n_fmt} stages [{elapsed}] {postfix}" if total is None else None) \
             if enabled else None
+        self._stop = threading.Event()
+        if enabled:
+            threading.Thread(target=self._tick, daemon=True).start()
+
+    def _tick(self) -> None:
+        while not self._stop.wait(1.0):
+            self.bar.refresh()
 
     def _event(self, name: str, seconds: float | None) -> None:
         if self.bar is None:
@@ -79,6 +88,7 @@ class StageBar:
 
     def close(self) -> None:
         """Finish the bar."""
-        if self.bar is not None:
+        self._stop.set()
+        if self.bar is not None and not self.bar.disable:
             self.bar.set_postfix_str("done")
             self.bar.close()
