@@ -48,7 +48,7 @@ def run(args) -> int:
     check_map_input(args.input)
     to_bag = args.output.suffix.lower() not in (".bt", ".ot")
     if to_bag and not (args.output.suffix.lower() == ".bag" or not args.output.suffix):
-        raise CliError(f"{args.output}: OUT must end in .bt, .ot or .bag, or name a ROS 2 bag folder")
+        raise CliError(f"{args.output}: OUT must end in .bt or .ot (or .bag, or name a ROS 2 bag folder)")
     check_not_input(args.output, [args.input], force=args.force)
     (m, b), = load_map_inputs([args.input], args, strict=not args.lenient)
     if to_bag:
