@@ -15,6 +15,7 @@ from octomerge_jax.cli import main
 from octomerge_jax.io import MapFormatError, to_bytes
 from octomerge_jax.io.bags import (BagError, TransformBuffer, decode_point_cloud2, read_bag, read_bag_scans,
                                    select_map, write_bag)
+from octomerge_jax.io.bags.scans import nearest
 from octomerge_jax.io.scans import Scan
 
 pytest.importorskip("rosbags")
@@ -137,6 +138,8 @@ def test_transform_buffer_chain():
     np.testing.assert_allclose(tf.lookup("camera", "laser", 5 * S, 0), np.linalg.inv(Ts[3]) @ Ts[2], atol=1e-12)
     assert tf.lookup("map", "laser", S // 2 + 1, S // 10) is None  # no base sample within 0.1 s
     assert tf.root_of("camera") == "map"
+    stamps = np.array([10, 20, 30])
+    assert [nearest(stamps, t) for t in (0, 14, 15, 16, 25, 99)] == [0, 0, 0, 1, 1, 2]
     with pytest.raises(BagError, match="does not connect frame laser to frame elsewhere"):
         tf.lookup("elsewhere", "laser", S, S)
 

@@ -91,6 +91,14 @@ def _pose_matrix(position, orientation) -> np.ndarray:
     return np.asarray(se3.from_quaternion(q, [position.x, position.y, position.z], xp=np))
 
 
+def nearest(stamps_ns: np.ndarray, t: int) -> int:
+    """Index of the stamp in sorted ``stamps_ns (k,)`` nearest to ``t`` (the earlier on a tie)."""
+    i = int(np.searchsorted(stamps_ns, t))
+    if i == len(stamps_ns) or (i > 0 and t - int(stamps_ns[i - 1]) <= int(stamps_ns[i]) - t):
+        i -= 1
+    return max(i, 0)
+
+
 class _Edge(NamedTuple):
     parent: str
     stamps_ns: np.ndarray  # (k,) int64, sorted
@@ -136,18 +144,16 @@ class TransformBuffer:
         return frame
 
     def _up(self, frame: str, stamp_ns: int, max_gap_ns: int):
-        """``[(frame, T_frame0_frame)]`` from ``frame`` (identity) up to its root; ``None`` for
-        the rest of the chain where a dynamic edge has no sample within ``max_gap_ns``."""
+        """The chain from ``frame`` up: ``([(frame_k, T_{frame_k}_{frame_k-1})], stop)``, the first
+        entry ``(frame, identity)``; ``stop`` is the frame whose dynamic edge to its parent has no
+        transform within ``max_gap_ns`` (the chain ends there), ``None`` if the root was reached."""
         chain = [(frame, np.eye(4))]
         while frame in self.edges and len(chain) <= len(self.edges):
             e = self.edges[frame]
             if e.static:
                 T_pc = e.T[-1]
             else:
-                i = int(np.clip(np.searchsorted(e.stamps_ns, stamp_ns), 1, len(e.stamps_ns) - 1)) \
-                    if len(e.stamps_ns) > 1 else 0
-                if len(e.stamps_ns) > 1 and abs(e.stamps_ns[i - 1] - stamp_ns) <= abs(e.stamps_ns[i] - stamp_ns):
-                    i -= 1
+                i = nearest(e.stamps_ns, stamp_ns)
                 if abs(int(e.stamps_ns[i]) - stamp_ns) > max_gap_ns:
                     return chain, frame
                 T_pc = e.T[i]
@@ -172,7 +178,7 @@ class TransformBuffer:
         for k, (frame, T_pc) in enumerate(up_t):
             T = T_pc @ T if k else T  # T_frame_target
             if frame in to_source:
-                return np.linalg.inv(T) @ to_source[frame]
+                return se3.inverse(T, xp=np) @ to_source[frame]
         if stop_s is not None or stop_t is not None:
             return None
         raise BagError(f"/tf does not connect frame {source} to frame {target}")
@@ -251,7 +257,7 @@ def read_bag_scans(path, cloud_topic: str, pose_topic: str | None = None, *, fix
             if pose_topic is None:
                 T = tf.lookup(fixed, frame, t, gap_ns)
             else:
-                i = int(np.argmin(np.abs(poses_t - t)))
+                i = nearest(poses_t, t)
                 T = poses_T[i] if abs(int(poses_t[i]) - t) <= gap_ns else None
                 if T is not None and pose_child and pose_child != frame:
                     T_child_frame = tf.lookup(pose_child, frame, t, gap_ns)
