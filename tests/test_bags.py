@@ -228,3 +228,25 @@ def test_build_from_bag_cli(tmp_path, kind, source):
     assert main(args + (["--pose-topic", pose_topic] if pose_topic else [])) == 0
     om.save(_reference(clouds, T_ws), tmp_path / "ref.bt")
     assert (tmp_path / "ref.bt").read_bytes() == out.read_bytes()
+
+
+def test_written_bags_as_ros_tools_see_them(room, tmp_path):
+    """Without rosbags' reader: the ROS 1 connection header names octomap_msgs/Octomap with the
+    md5sum rosmsg gives, and the ROS 2 sqlite3 bag's tables (what ros2 bag reads) hold the type and
+    a CDR message whose int8[] is the .bt body."""
+    import sqlite3
+
+    m = room[0]
+    body = to_bytes(m)
+    write_bag(tmp_path / "a.bag", m)
+    raw = (tmp_path / "a.bag").read_bytes()
+    assert raw.startswith(b"#ROSBAG V2.0\n") and b"type=octomap_msgs/Octomap" in raw
+    assert b"md5sum=9a45536b45c5e409cd49f04bb2d9999f" in raw and body in raw
+    write_bag(tmp_path / "b", m, storage="sqlite3", frame_id="map", stamps_ns=[3 * S])
+    with sqlite3.connect(tmp_path / "b" / "b.db3") as db:
+        (name, typ, fmt), = db.execute("select name, type, serialization_format from topics")
+        (t, blob), = db.execute("select timestamp, data from messages")
+    assert (name, typ, fmt, t) == ("/octomap_binary", "octomap_msgs/msg/Octomap", "cdr", 3 * S)
+    n = len(body)
+    assert blob[:4] == b"\x00\x01\x00\x00"  # CDR little-endian encapsulation
+    assert blob[-n:] == body and int.from_bytes(blob[-n - 4:-n], "little") == n  # int8[]: length + bytes
