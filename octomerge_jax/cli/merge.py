@@ -159,13 +159,12 @@ def run(args) -> int:
     except (ValueError, FileNotFoundError) as err:
         raise CliError(str(err)) from None
     t0 = time.perf_counter()
-    bar = StageBar(show_bars(args.quiet), "merge")
-    with bar.stage("load"):
-        (m1, b1), (m2, b2) = load_map_inputs([args.in1, args.in2], args)
+    (m1, b1), (m2, b2) = load_map_inputs([args.in1, args.in2], args)
     t_load = time.perf_counter() - t0
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a))
     say(f"map 1: {args.in1} ({m1.num_leaves:,} leaves, {m1.resolution:g} m)")
     say(f"map 2: {args.in2} ({m2.num_leaves:,} leaves, {m2.resolution:g} m)")
+    bar = StageBar(show_bars(args.quiet), "merge")
     try:
         with bar.watch():
             merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess), T_1_2_true=truth, config=cfg)
