@@ -36,7 +36,7 @@ def test_stage_bar_follows_pipeline_stages(monkeypatch):
     with t.stage("fuse"):  # not watched any more
         pass
     bar.close()
-    assert "merge: 2 stages" in err.getvalue() and "fuse" not in err.getvalue()
+    assert "merge [00:00] 2 stages done" in err.getvalue() and "fuse" not in err.getvalue()
     p = Progress(3, True, desc="inserting", unit="scan")
     p.update(n=3)
     p.close()

@@ -55,7 +55,7 @@ class StageBar:
 
     def __init__(self, enabled: bool, desc: str, total: int | None = None):
         self.bar = tqdm(total=total, desc=desc, unit="stage", file=sys.stderr, dynamic_ncols=True,
-                        bar_format="{desc}: {n_fmt} stages [{elapsed}] {postfix}" if total is None else None) \
+                        bar_format="{desc} [{elapsed}] {n_fmt} stages done{postfix}" if total is None else None) \
             if enabled else None
         self._stop = threading.Event()
         if enabled:
