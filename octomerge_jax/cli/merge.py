@@ -14,6 +14,7 @@ from ..io import MapFormatError, load, save
 from ..pipeline import MergeError, icp_trace, merge, transform_from_xyz_rpy
 from ._common import CliError
 from .plots import plot_icp_convergence, plot_map, plot_overlap
+from .view import add_view_options, require_viewer, visualize_merge
 
 # exit codes (also in the epilog)
 EXIT_INPUT = 1
@@ -82,6 +83,9 @@ def register(subparsers) -> None:
     o.add_argument("--figure", type=Path, metavar="PNG", help="overlap clouds before/after ICP (Fig. 7.6)")
     o.add_argument("--map-figure", type=Path, metavar="PNG", help="merged map, occupancy-shaded (Fig. 7.7)")
     o.add_argument("--icp-figure", type=Path, metavar="PNG", help="ICP convergence per iteration")
+    o.add_argument("--visualize", action="store_true",
+                   help="after merging, serve a live 3-D view (octomerge view; needs viser)")
+    add_view_options(p)
     o.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
     o.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
     p.set_defaults(func=run)
@@ -138,6 +142,8 @@ def run(args) -> int:
     for extra in (args.report, args.figure, args.map_figure, args.icp_figure):
         if extra is not None:
             _check_output_side(extra, [args.in1, args.in2, args.out])
+    if args.visualize:
+        require_viewer()
     guess = guess_from_args(args)
     truth = None
     if args.true_xyz or args.true_rpy:
@@ -172,6 +178,8 @@ def run(args) -> int:
         + "".join(f", {p}" for p in (args.report, args.figure, args.map_figure, args.icp_figure) if p))
     for w in report.warnings:
         print(f"octomerge merge: warning: {w}", file=sys.stderr)
+    if args.visualize:
+        visualize_merge(m1, m2, report, cfg, args)
     return 0
 
 
