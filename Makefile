@@ -2,25 +2,36 @@
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
-EXTRAS ?= test
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test bench notebooks clean
 
-$(BIN)/.installed-$(EXTRAS): pyproject.toml
+$(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --upgrade pip
-	$(BIN)/python -m pip install -e ".[$(EXTRAS)]"
+
+# the package alone: what `octomerge demo` needs
+$(BIN)/.installed-core: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -e .
 	touch $@
 
-setup: $(BIN)/.installed-$(EXTRAS)
+# the package with the test tool chain (pytest, OctoMap's Python bindings, viser, ...)
+$(BIN)/.installed-test: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -e ".[test]"
+	touch $@ $(BIN)/.installed-core
+
+setup: $(BIN)/.installed-test
 
 ## demo: set up and run the main job on built-in data
-demo: setup
+demo: $(BIN)/.installed-core
 	$(BIN)/octomerge demo --out-dir octomerge-demo
 
 ## test: set up and run the test suite (what CI runs)
-test: setup
+test: $(BIN)/.installed-test
 	$(BIN)/python -m pytest -m "not slow" -n auto --dist loadfile
+
+## notebooks: execute the notebooks in place (committed with their outputs)
+notebooks: $(BIN)/.installed-test
+	$(BIN)/python notebooks/execute.py notebooks/*.ipynb
 
 clean:
 	rm -rf $(VENV) octomerge-demo .pytest_cache .hypothesis

@@ -179,3 +179,22 @@ def test_merge_bags_in_and_out(files, tmp_path, capsys):
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 3 and "no topic /robot1/octomap_full" in err[0] and "applies to bag inputs" in err[1], err
     assert "merged.bag exists" in err[2]
+
+
+def test_dump_config_describes_every_key(capsys):
+    """Every key ``dump-config`` writes is preceded by a comment describing it (from the
+    section's docstring), so a new setting without documentation fails here."""
+    import dataclasses
+
+    from octomerge_jax.pipeline import MergeConfig
+    from octomerge_jax.pipeline.config import field_docs
+
+    cfg = MergeConfig()
+    for f in dataclasses.fields(cfg):
+        section = type(getattr(cfg, f.name))
+        missing = [g.name for g in dataclasses.fields(section) if not field_docs(section).get(g.name)]
+        assert not missing, f"[{f.name}] keys without a description: {missing}"
+    assert main(["dump-config"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    keys = [i for i, line in enumerate(lines) if line and line[0].isalpha() and " = " in line]
+    assert keys and all(lines[i - 1].startswith("#") for i in keys)

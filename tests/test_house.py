@@ -17,7 +17,7 @@ LAYERS = [
     ("side", ["io", "sim", "examples"]),
     ("solvers", ["registration"]),
     ("pipeline", ["pipeline"]),
-    ("apps", ["cli", "__init__", "__main__"]),
+    ("apps", ["cli", "viewer", "__init__", "__main__"]),
 ]
 LAYER_OF = {name: i for i, (_, names) in enumerate(LAYERS) for name in names}
 

@@ -32,3 +32,35 @@ def test_notebook_runs(name):
               if "image/png" in o.get("data", {})]
     if name.startswith("01"):
         assert len(images) >= 3  # overlap, merged map, ICP convergence figures
+
+
+def _committed():
+    return sorted(NOTEBOOKS.glob("*.ipynb"))
+
+
+@pytest.mark.parametrize("path", _committed(), ids=lambda p: p.name)
+def test_committed_notebook_has_the_outputs_of_its_code(path):
+    """A committed notebook was executed top to bottom by ``notebooks/execute.py`` with the
+    code it holds now (no stale outputs), shows its figures, and stays small enough to read on
+    GitHub."""
+    import importlib.util
+
+    nbformat = pytest.importorskip("nbformat")
+    spec = importlib.util.spec_from_file_location("execute", NOTEBOOKS / "execute.py")
+    execute = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(execute)
+    nb = nbformat.read(path, as_version=4)
+    stored = nb.metadata.get("octomerge_jax", {}).get("code_sha256")
+    assert stored == execute.code_sha256(nb), (
+        f"{path.name}: code changed since it was executed; run python notebooks/execute.py {path}")
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    assert [c.execution_count for c in code] == list(range(1, len(code) + 1)), "not run top to bottom"
+    outputs = [o for c in code for o in c.outputs]
+    assert not [o for o in outputs if o.get("output_type") == "error"]
+    assert any("image/png" in o.get("data", {}) for o in outputs), "no figure"
+    assert path.stat().st_size < 600_000
+    for c in code:  # public names only
+        assert "sys.path" not in c.source
+        assert not any(part.startswith("_") for line in c.source.splitlines()
+                       if line.lstrip().startswith(("import ", "from ")) for part in
+                       line.replace(",", " ").replace(".", " ").split() if part != "__future__")

@@ -17,6 +17,7 @@ from ._common import CliError
 from ._inputs import add_bag_options, check_map_input, load_map_inputs
 from .progress import StageBar, show_bars
 from .plots import plot_icp_convergence, plot_map, plot_overlap
+from .view import add_view_options, require_viewer, visualize_merge
 
 # exit codes (also in the epilog)
 EXIT_INPUT = 1
@@ -86,6 +87,9 @@ def register(subparsers) -> None:
     o.add_argument("--figure", type=Path, metavar="PNG", help="overlap clouds before/after ICP (Fig. 7.6)")
     o.add_argument("--map-figure", type=Path, metavar="PNG", help="merged map, occupancy-shaded (Fig. 7.7)")
     o.add_argument("--icp-figure", type=Path, metavar="PNG", help="ICP convergence per iteration")
+    o.add_argument("--visualize", action="store_true",
+                   help="after merging, serve a live 3-D view (octomerge view; needs viser)")
+    add_view_options(p)
     o.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
     o.add_argument("--out-bag", type=Path, metavar="BAG",
                    help="also write the merged map as one octomap_msgs/Octomap message (binary for a .bt OUT, "
@@ -149,6 +153,8 @@ def run(args) -> int:
     for extra in (args.report, args.figure, args.map_figure, args.icp_figure):
         if extra is not None:
             _check_output_side(extra, [args.in1, args.in2, args.out])
+    if args.visualize:
+        require_viewer()
     guess = guess_from_args(args)
     truth = None
     if args.true_xyz or args.true_rpy:
@@ -188,6 +194,8 @@ def run(args) -> int:
         f", {p}" for p in (args.out_bag, args.report, args.figure, args.map_figure, args.icp_figure) if p))
     for w in report.warnings:
         print(f"octomerge merge: warning: {w}", file=sys.stderr)
+    if args.visualize:
+        visualize_merge(m1, m2, report, cfg, args)
     return 0
 
 

@@ -60,8 +60,8 @@ def _equal_3d(ax, pts):
     ax.set_ylim(c[1] - r, c[1] + r)
     ax.set_zlim(c[2] - r, c[2] + r)
     try:
-        ax.set_box_aspect((1, 1, 1))
-    except AttributeError:  # pragma: no cover - old matplotlib
+        ax.set_box_aspect((1, 1, 1), zoom=0.85)  # room for the z label
+    except (AttributeError, TypeError):  # pragma: no cover - old matplotlib
         pass
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
@@ -152,10 +152,42 @@ def plot_map(m, path=None, *, title: str | None = None, max_points: int = 40_000
     return fig
 
 
+def _draw_map_top(fig, pos, m, title, max_points, zmin, zmax, lims):
+    """Occupied leaves with centres in ``[zmin, zmax]`` seen from above (a floor plan)."""
+    c, s, p = _occupied(m, max_points * 4)
+    keep = (c[:, 2] >= (-np.inf if zmin is None else zmin)) & (c[:, 2] <= (np.inf if zmax is None else zmax))
+    c, s, p = c[keep], s[keep], p[keep]
+    order = np.argsort(p)  # most certain on top
+    ax = fig.add_subplot(*pos)
+    sc = None
+    if c.shape[0]:
+        span = float(np.ptp((lims if lims is not None else c)[:, :2], axis=0).max()) or 1.0
+        points_per_m = 4.5 * 72 / span  # a panel is about 4.5 inches wide
+        area = np.clip(s[order] * points_per_m, 0.5, 30.0) ** 2
+        sc = ax.scatter(c[order, 0], c[order, 1], s=area, c=p[order], cmap="Blues", vmin=0.3, vmax=1.0,
+                        marker="s", linewidths=0)
+    if lims is not None:
+        pad = 0.02 * float((lims.max(0) - lims.min(0))[:2].max())
+        ax.set_xlim(lims[:, 0].min() - pad, lims[:, 0].max() + pad)
+        ax.set_ylim(lims[:, 1].min() - pad, lims[:, 1].max() + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title)
+    return ax, sc
+
+
 def plot_merge_comparison(maps, titles, path=None, *, max_points: int = 30_000, zmax: float | None = None,
-                          suptitle: str | None = None):
+                          zmin: float | None = None, view: str = "top", suptitle: str | None = None):
     """Thesis Fig. 7.8 / 7.14: maps side by side with one colour scale and one box, e.g. the
-    merge with the initial guess next to the merge with the ICP-refined transform."""
+    merge with the initial guess next to the merge with the ICP-refined transform.
+
+    ``view="top"`` (default): the occupied leaves with centres between ``zmin`` and ``zmax``
+    [m] from above, a floor plan in which a misregistration shows as doubled walls;
+    ``view="3d"``: a 3-D scatter with the ceiling above ``zmax`` cut off. Raises
+    ``ValueError`` for another ``view``."""
+    if view not in ("top", "3d"):
+        raise ValueError(f"view must be 'top' or '3d', got {view!r}")
     fig = _figure((5.5 * len(maps), 5.5))
     pts = [_occupied(m, max_points)[0] for m in maps]
     nonempty = [p for p in pts if p.shape[0]]
@@ -163,7 +195,10 @@ def plot_merge_comparison(maps, titles, path=None, *, max_points: int = 30_000, 
     sc = None
     axes = []
     for k, (m, t) in enumerate(zip(maps, titles)):
-        ax, s = _draw_map(fig, (1, len(maps), k + 1), m, t, max_points, zmax, lims)
+        if view == "top":
+            ax, s = _draw_map_top(fig, (1, len(maps), k + 1), m, t, max_points, zmin, zmax, lims)
+        else:
+            ax, s = _draw_map(fig, (1, len(maps), k + 1), m, t, max_points, zmax, lims)
         sc = s if s is not None else sc
         axes.append(ax)
     if sc is not None:

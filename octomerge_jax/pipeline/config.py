@@ -20,6 +20,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
+import textwrap
 import tomllib
 import types
 import typing
@@ -133,8 +135,12 @@ class TransformConfig:
 
 @dataclasses.dataclass(frozen=True)
 class FuseConfig:
-    """Alg. 8 (``fuse.fuse`` / ``fuse.fuse_many``): ``rule`` ``"sum"`` (eq. 5.15, independent
-    maps), ``"max"`` (maps sharing data) or ``"weighted"`` with ``weights`` (one per map)."""
+    """Alg. 8 (``fuse.fuse`` / ``fuse.fuse_many``).
+
+    - ``rule``: ``"sum"`` (eq. 5.15, independent maps), ``"max"`` (maps sharing data) or
+      ``"weighted"`` (with ``weights``).
+    - ``weights``: one per map, for ``rule = "weighted"``.
+    """
 
     rule: str = "sum"
     weights: tuple[float, ...] = (1.0, 1.0)
@@ -142,10 +148,14 @@ class FuseConfig:
 
 @dataclasses.dataclass(frozen=True)
 class BatchConfig:
-    """``octomerge batch``: ``workers`` local processes/threads (0: run in this process),
-    ``scheduler`` a Dask address (``tcp://host:8786``) or ``""``, ``resume`` skips pairs whose
-    output exists, ``group_by_bucket`` runs pairs of one capacity bucket through one jitted
-    ``vmap`` call (``merge_batch``) instead of one by one."""
+    """``octomerge batch``.
+
+    - ``workers``: local processes / threads (0: run in this process).
+    - ``scheduler``: a Dask address (``tcp://host:8786``) or ``""``.
+    - ``resume``: skip pairs whose output exists.
+    - ``group_by_bucket``: run pairs of one capacity bucket through one jitted ``vmap`` call
+      (``merge_batch``) instead of one by one.
+    """
 
     workers: int = 0
     scheduler: str = ""
@@ -157,13 +167,17 @@ class BatchConfig:
 class DemoConfig:
     """``octomerge demo``: the simulated two-robot job (``sim.make_two_robot_maps``).
 
-    ``error_xyz`` [m] and ``error_rpy_rad`` perturb the true ``T_1_2`` to make the erroneous
-    initial guess (thesis eqs. 7.2/7.3 give its eps_r / eps_t).
+    - ``scene``: ``"lab"``, ``"office"`` or ``"campus"`` (outdoor, lidar: use resolution 0.2).
+    - ``resolution``: voxel edge [m].
+    - ``spacing``: between scans [m]; 0: the scene's own (lab / office 0.5, campus 2).
+    - ``seed``: of the simulated robots' paths and noise.
+    - ``error_xyz`` [m] / ``error_rpy_rad``: perturb the true ``T_1_2`` to make the erroneous
+      initial guess (thesis eqs. 7.2/7.3 give its eps_r / eps_t).
     """
 
-    scene: str = "lab"  # "lab", "office" or "campus" (outdoor, lidar: use resolution 0.2)
+    scene: str = "lab"
     resolution: float = 0.1
-    spacing: float = 0.0  # between scans [m]; 0: the scene's own (lab / office 0.5, campus 2)
+    spacing: float = 0.0
     seed: int = 0
     error_xyz: tuple[float, float, float] = (0.4, -0.3, 0.0)
     error_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.05)
@@ -344,15 +358,19 @@ def _toml_value(v) -> str:
 
 
 def dumps_toml(cfg: MergeConfig, comments: bool = True) -> str:
-    """The config as TOML text (one table per section). Optional settings left at ``None``
+    """The config as TOML text (one table per section). With ``comments``, each key is preceded
+    by its description from the section's docstring, and optional settings left at ``None``
     (automatic) are written as comments so users see that they exist."""
     lines = ["# octomerge configuration (octomerge dump-config). Load with --config FILE;",
              "# command-line flags override these values. Omitted keys keep their defaults.", ""]
     for f in dataclasses.fields(cfg):
         section = getattr(cfg, f.name)
+        docs = field_docs(type(section)) if comments else {}
         lines.append(f"[{f.name}]")
         for g in dataclasses.fields(section):
             v = getattr(section, g.name)
+            if comments and g.name in docs:
+                lines.extend(textwrap.wrap(docs[g.name], 96, initial_indent="# ", subsequent_indent="#   "))
             if v is None:
                 if comments:
                     lines.append(f"# {g.name} = ...  (automatic)")
@@ -360,6 +378,41 @@ def dumps_toml(cfg: MergeConfig, comments: bool = True) -> str:
             lines.append(f"{g.name} = {_toml_value(list(v) if isinstance(v, tuple) else v)}")
         lines.append("")
     return "\n".join(lines)
+
+
+_BULLET = re.compile(r"^\s*- ((?:``\w+``(?:\s*[/,]\s*)?)+)[^:]*:\s*(.*)$")
+
+
+def field_docs(section_type) -> dict[str, str]:
+    """``{key: description}`` from a config section's docstring bullets
+    (``- ``key``: text`` or ``- ``a`` / ``b`` [unit]: text``), whitespace and RST quotes
+    simplified."""
+    out: dict[str, str] = {}
+    fields = {f.name for f in dataclasses.fields(section_type)}
+    names: list[str] = []
+    text: list[str] = []
+
+    def flush():
+        doc = " ".join(" ".join(text).replace("``", "").split())
+        for name in names:
+            out.setdefault(name, doc)
+
+    for line in (section_type.__doc__ or "").splitlines():
+        m = _BULLET.match(line)
+        if m:
+            flush()
+            names, text = re.findall(r"``(\w+)``", line.split(":", 1)[0]), [m.group(2)]
+        elif names and line.strip():
+            text.append(line.strip())
+        elif names:
+            flush()
+            names, text = [], []
+    flush()
+    for name, doc in list(out.items()):  # keys described inside another key's text
+        for other in re.findall(r"\b(\w+)\b", doc):
+            if other != name and other in fields and other not in out:
+                out[other] = doc
+    return out
 
 
 def load_config(path) -> MergeConfig:
