@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .._fileutil import check_input_file
 from .._fileutil import check_not_input
 from ..io import load, num_nodes, save
 from ._common import CliError
@@ -34,8 +35,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    if not args.input.is_file():
-        raise CliError(f"{args.input}: no such file")
+    check_input_file(args.input)
     if args.output.suffix.lower() not in (".bt", ".ot"):
         raise CliError(f"{args.output}: OUT must end in .bt or .ot")
     check_not_input(args.output, [args.input], force=args.force)

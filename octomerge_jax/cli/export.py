@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .._fileutil import check_input_file
 from .._fileutil import check_not_input
 from ..io import load
 from ..io.export import export_map
-from ._common import CliError
 
 EPILOG = """examples:
   octomerge export merged.bt merged.glb                  # cubes coloured by height
@@ -36,8 +36,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    if not args.map.is_file():
-        raise CliError(f"{args.map}: no such file")
+    check_input_file(args.map)
     check_not_input(args.output, [args.map], args.force)
     m = load(args.map)
     export_map(m, args.output, which=args.which, color_by=args.color, points=args.points)

@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+from .._fileutil import check_input_file
 from .._fileutil import check_not_input
 from ..pipeline import COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, REFINE_CHOICES, MergeConfig, load_config
 from ..io import MapFormatError, load, save
@@ -132,8 +133,7 @@ def _check_output(out: Path, inputs, force: bool, what: str = "OUT"):
 
 def run(args) -> int:
     for p in (args.in1, args.in2):
-        if not p.is_file():
-            raise CliError(f"{p}: no such file")
+        check_input_file(p)
     _check_output(args.out, [args.in1, args.in2], args.force)
     for extra in (args.report, args.figure, args.map_figure, args.icp_figure):
         if extra is not None:
