@@ -78,6 +78,9 @@ from ..tree import num_nodes
 __all__ = [
     "BINARY_FILE_HEADER",
     "DEFAULT_MAX_LEAVES",
+    "READ_BYTES_PER_LEAF",
+    "READ_BYTES_PER_RECORD",
+    "reading_bytes",
     "MAX_RESOLUTION",
     "MIN_RESOLUTION",
     "FULL_FILE_HEADER",
@@ -114,8 +117,8 @@ _HEADER_WINDOW = 1 << 16
 #: float32 voxel geometry under- or overflows (docs/design.md, "Resolution range").
 MIN_RESOLUTION = 1e-6
 MAX_RESOLUTION = 1e6
-#: Default ``max_leaves`` of the readers (about 4.7 GB while reading; see ``load``).
-DEFAULT_MAX_LEAVES = 1 << 27
+#: Default ``max_leaves`` of the readers (about 4.5 GB of host memory to read; see ``load``).
+DEFAULT_MAX_LEAVES = 100_000_000
 
 # 2-bit child states of a .bt record word: bit j of INNER/OCC/FREE set iff child j is such.
 _w = np.arange(1 << 16, dtype=np.uint32)
@@ -334,12 +337,12 @@ def _stream_error(source, start: int, rec_size: int, total: int, err) -> MapForm
 
 #: Peak bytes of host memory per record of the stream while parsing its structure
 #: (``_preorder.tree_length`` + ``stream_layout``), and per leaf while generating and sorting
-#: the leaves (uint64 sort key, int32 code words, depth, log-odds); see ``_reading_bytes``.
+#: the leaves (uint64 sort key, int32 code words, depth, log-odds); see ``reading_bytes``.
 READ_BYTES_PER_RECORD = 96
 READ_BYTES_PER_LEAF = 29
 
 
-def _reading_bytes(records: int, leaves: int) -> int:
+def reading_bytes(records: int, leaves: int) -> int:
     """Peak host bytes to read a tree of ``records`` stream records and ``leaves`` leaves
     into a map (the map's padded arrays included)."""
     cap = _map.bucket_capacity(leaves) if leaves else 0
@@ -352,7 +355,7 @@ def _check_size(source, records: int, leaves: int, max_leaves: int | None) -> No
     if leaves > limit:
         raise MapTooLargeError(source, None, f"the tree holds {leaves:,} leaves, over the "
                                f"limit of {limit:,} (max_leaves / --max-leaves raises it)")
-    check_allocation(_reading_bytes(records, leaves),
+    check_allocation(reading_bytes(records, leaves),
                      f"reading {source} ({records:,} nodes, {leaves:,} leaves)")
 
 
@@ -637,7 +640,7 @@ def load(path, *, params: _map.OccupancyParams | None = None, strict: bool = Tru
     Raises ``MapFormatError`` (naming the path and byte offset) for bad data; see the
     module docstring. ``strict=False`` tolerates trailing bytes and a wrong header size.
 
-    Size: a tree of more than ``max_leaves`` leaves (default ``DEFAULT_MAX_LEAVES``, 2^27)
+    Size: a tree of more than ``max_leaves`` leaves (default ``DEFAULT_MAX_LEAVES``, 10^8)
     raises ``MapTooLargeError``, and one whose reading would take more host memory than the
     budget (``budget.check_allocation``; about 29 B per leaf plus the map's padded 16 B
     per leaf and 96 B per node) raises ``MemoryBudgetError``, both before allocating.
