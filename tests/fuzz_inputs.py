@@ -29,6 +29,7 @@ import sys
 import tempfile
 import time
 import traceback
+import warnings
 from collections import Counter
 from pathlib import Path
 
@@ -279,7 +280,8 @@ def run_case(target: str, data: bytes, folder: Path, cli: bool, timeout: float) 
         previous = signal.signal(signal.SIGALRM, _alarm)
         signal.setitimer(signal.ITIMER_REAL, timeout)
     try:
-        with memory_budget(CASE_BUDGET):
+        with memory_budget(CASE_BUDGET), warnings.catch_warnings():
+            warnings.simplefilter("error")  # as the test suite: a warning is a finding
             outcome = CHECKS[target](path)
             if cli and target in ("bt", "ot"):
                 check_cli(path)

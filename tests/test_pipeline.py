@@ -72,10 +72,11 @@ def test_merge_recovers_transform_and_composes_stages(merged_icp):
     m1, m2, T = small_pair()
     assert rep.icp["converged"], rep.icp
     assert rep.epsilon_r_init > 0.25 and rep.epsilon_t_init > 0.1
-    # thesis "coherent" limits are 0.25 / 0.9; here ~0.05 / 0.05 (0.7 deg, 3 cm: the pi/4
-    # rotated voxel grids of the two maps bias the voxel-centre clouds slightly)
-    assert rep.epsilon_r < 0.1, rep.epsilon_r
-    assert rep.epsilon_t < 0.15, rep.epsilon_t
+    # thesis "coherent" limits are 0.25 / 0.9; here ~0.01 / 0.02 from a guess at 0.28 / 0.150
+    # (the pi/4 rotated voxel grids of the two maps bias the voxel-centre clouds slightly).
+    # Bounds well below the guess's errors: returning the guess cannot pass.
+    assert rep.epsilon_r < 0.05 and rep.epsilon_r < rep.epsilon_r_init / 4, rep.epsilon_r
+    assert rep.epsilon_t < 0.06 and rep.epsilon_t < rep.epsilon_t_init / 2.5, rep.epsilon_t
     np.testing.assert_allclose(rep.T_1_2[:3, :3] @ rep.T_1_2[:3, :3].T, np.eye(3), atol=1e-9)
     # the merged map is exactly fuse(m1, transform_map(m2, T_1_2)) with the reported T_1_2
     expect = fuse(m1, transform_map(m2, rep.T_1_2))
@@ -221,12 +222,15 @@ def test_icp_trace_matches_icp(merged_icp):
 
 
 def test_merge_with_symmetric_coarse_matching(merged_icp):
-    """registration.coarse_matching reaches ICP: 'symmetric' registers the pair as well as the
-    default does (same limits as test_merge_recovers_transform_and_composes_stages)."""
+    """registration.coarse_matching reaches ICP: 'symmetric' registers the pair (translation
+    within 0.12 m, about 6x the default path's error on this pair)."""
     m1, m2, T = small_pair()
     cfg = MergeConfig().replace(registration={"coarse_matching": "symmetric"})
     _, rep = merge(m1, m2, perturbed(), config=cfg, T_1_2_true=T)
-    assert rep.icp["converged"] and rep.epsilon_r < 0.1 and rep.epsilon_t < 0.15
+    # from a guess at 0.28 / 0.150 the symmetric path ends at ~0.017 / 0.109 (the default's
+    # ~0.01 / 0.02): bounds a returned guess cannot meet
+    assert rep.icp["converged"] and rep.epsilon_r < 0.05 and rep.epsilon_t < 0.12
+    assert rep.epsilon_t < 0.8 * rep.epsilon_t_init
     assert rep.displacement < 2 * m1.resolution
     # a different coarse path, so a (slightly) different transform than the default's
     assert not np.array_equal(rep.T_1_2, merged_icp[1].T_1_2)

@@ -127,8 +127,10 @@ class _Reader:
         self.tag(4, f"{what} rotation")
         at = self.pos
         q = self.f64(4, f"{what} rotation")
-        if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+        scale = float(np.max(np.abs(q))) if np.all(np.isfinite(q)) else 0.0
+        if not 1e-150 < scale:  # non-finite, zero or denormal: no rotation
             raise ValueError(f"{self.path}: invalid quaternion {q.tolist()} at byte offset {at}")
+        q = q / scale  # largest component 1: its norm neither overflows nor underflows
         T = np.eye(4)
         T[:3, :3] = se3.from_quaternion(q, xp=np)[:3, :3]
         T[:3, 3] = t
@@ -393,7 +395,9 @@ def _read_pcd(path: Path) -> np.ndarray:
             raise ValueError(f"{path}: binary PCD truncated at byte offset {len(data)}: "
                              f"{points} points need {dt.itemsize * points} bytes after offset {pos}")
         rec = np.frombuffer(data, dt, count=points, offset=pos)
-        xyz = np.stack([rec[f"_{fields.index(a)}"][:, 0].astype(np.float64) for a in "xyz"], axis=1)
+        with np.errstate(invalid="ignore"):  # signalling NaNs (invalid points) widen quietly
+            xyz = np.stack([rec[f"_{fields.index(a)}"][:, 0].astype(np.float64) for a in "xyz"],
+                           axis=1)
     else:
         raise ValueError(f"{path}: unsupported PCD DATA kind {kind!r} (ascii and binary are supported)")
     xyz = xyz[~np.any(np.isnan(xyz), axis=1)]
