@@ -60,8 +60,6 @@ from __future__ import annotations
 import array
 import math
 import os
-import re
-from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -72,6 +70,9 @@ from .. import morton
 from .._fileutil import atomic_output, check_input_file
 from ..budget import check_allocation
 from . import _preorder
+from ._header import (BINARY_FILE_HEADER, FULL_FILE_HEADER, HEADER_WINDOW, MAX_RESOLUTION,
+                      MIN_RESOLUTION, Header, format_resolution, header_bytes, parse_header_prefix,
+                      parse_legacy)
 from .errors import MapFormatError, MapTooLargeError
 from ..tree import num_nodes
 
@@ -97,26 +98,10 @@ __all__ = [
     "max_likelihood_prune",
 ]
 
-BINARY_FILE_HEADER = b"# Octomap OcTree binary file"
-FULL_FILE_HEADER = b"# Octomap OcTree file"
-_COMMENT = b"# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
 BYTES_SOURCE = "<bytes>"
 
 #: ``.ot`` node payload bytes (before the child mask) per supported tree id.
 _OT_PAYLOAD = {"OcTree": 4, "OcTreeStamped": 4, "ColorOcTree": 7}
-_WS = b" \t\n\r\v\f"
-_TOKEN_RE = re.compile(rb"[^ \t\n\r\v\f]*")
-#: What ``std::istream >> double`` / ``>> unsigned`` consume (libstdc++ ``num_get``): an
-#: optional sign, digits with one optional point, an optional exponent. The rest of the
-#: token is left in the stream (``res 1_0`` reads 1, then ``_0`` is the next token).
-_DOUBLE_RE = re.compile(rb"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
-_UNSIGNED_RE = re.compile(rb"\+?[0-9]+")
-#: First read of a file's header; a longer header (long comments) is read in doubling steps.
-_HEADER_WINDOW = 1 << 16
-#: Resolutions [m] a map may have: OctoMap accepts any positive double, but beyond these the
-#: float32 voxel geometry under- or overflows (docs/design.md, "Resolution range").
-MIN_RESOLUTION = 1e-6
-MAX_RESOLUTION = 1e6
 #: Default ``max_leaves`` of the readers (about 4.5 GB of host memory to read; see ``load``).
 DEFAULT_MAX_LEAVES = 100_000_000
 
@@ -134,35 +119,7 @@ _U64 = np.uint64
 _CHILD_SHIFT = np.array([3 * (15 - d) if d < 16 else 0 for d in range(17)], dtype=np.uint64)
 
 
-@dataclass(frozen=True)
-class Header:
-    """A parsed OctoMap file header.
-
-    ``binary`` (``.bt``) or full (``.ot``); ``tree_id`` as written (``"1"`` -> ``"OcTree"``);
-    ``size`` the claimed node count; ``resolution`` metres; ``data_offset`` the first body
-    byte; ``legacy`` for the old headerless ``.bt`` layout.
-    """
-
-    binary: bool
-    tree_id: str
-    size: int
-    resolution: float
-    data_offset: int
-    legacy: bool = False
-
-
 # ----------------------------------------------------------------------------- helpers
-
-
-def format_resolution(resolution: float) -> str:
-    """``res`` as C++ ``ostream << double`` prints it (``%g``: 6 significant digits)."""
-    return f"{float(resolution):g}"
-
-
-def _header_bytes(binary: bool, tree_id: str, size: int, resolution: float) -> bytes:
-    first = BINARY_FILE_HEADER if binary else FULL_FILE_HEADER
-    tail = f"id {tree_id}\nsize {int(size)}\nres {format_resolution(resolution)}\ndata\n"
-    return first + b"\n" + _COMMENT + tail.encode("ascii")
 
 
 def _as_uint8(data) -> np.ndarray:
@@ -180,137 +137,6 @@ def _as_uint8(data) -> np.ndarray:
     if values.size and (values.min() < -128 or values.max() > 255):
         raise ValueError("data values must be bytes (-128..255)")
     return values.astype(np.uint8)
-
-
-class _HeaderCut(Exception):
-    """The header runs past the end of the bytes parsed so far (read more and retry)."""
-
-
-def _skip_ws(buf: bytes, pos: int) -> int:
-    n = len(buf)
-    while pos < n and buf[pos] in _WS:
-        pos += 1
-    return pos
-
-
-def _token(buf: bytes, pos: int, complete: bool) -> tuple[bytes, int, int]:
-    """Next whitespace-delimited token (``std::istream >> std::string``): (token, start, end).
-    Empty at the end of the data; ``_HeaderCut`` where more data may follow."""
-    start = _skip_ws(buf, pos)
-    end = _TOKEN_RE.match(buf, start).end()
-    if end == len(buf) and not complete:
-        raise _HeaderCut
-    return buf[start:end], start, end
-
-
-def _number(buf: bytes, pos: int, complete: bool, pattern) -> tuple[bytes, int, int]:
-    """What ``std::istream >> number`` consumes after ``pos``: (text, start, end); the text is
-    empty where the stream would fail (no number there)."""
-    start = _skip_ws(buf, pos)
-    m = pattern.match(buf, start)
-    end = m.end() if m else start
-    if end == len(buf) and not complete:
-        raise _HeaderCut
-    return buf[start:end], start, end
-
-
-def _skip_line(buf: bytes, pos: int, complete: bool) -> int:
-    nl = buf.find(b"\n", pos)
-    if nl < 0 and not complete:
-        raise _HeaderCut
-    return len(buf) if nl < 0 else nl + 1
-
-
-def _check_header_resolution(res: float, source, offset: int) -> None:
-    if not (MIN_RESOLUTION <= res <= MAX_RESOLUTION):
-        raise MapFormatError(source, offset, f"header res {res!r} is outside the supported "
-                             f"{MIN_RESOLUTION:g}..{MAX_RESOLUTION:g} m")
-
-
-def _parse_header(buf: bytes, source, complete: bool = True) -> Header:
-    """Parse a file image's header (``AbstractOcTree::readHeader`` semantics: tokens of any
-    length, numbers read as ``std::istream`` does). With ``complete=False`` ``buf`` is a
-    prefix of the file and ``_HeaderCut`` asks for more of it."""
-    if buf.startswith(BINARY_FILE_HEADER):
-        binary = True
-    elif buf.startswith(FULL_FILE_HEADER):
-        binary = False
-    elif not complete and len(buf) < len(BINARY_FILE_HEADER):
-        raise _HeaderCut
-    else:
-        raise MapFormatError(source, 0, "not an OctoMap file: the first line must start with "
-                             f"{BINARY_FILE_HEADER.decode()!r} or {FULL_FILE_HEADER.decode()!r}")
-    pos = _skip_line(buf, 0, complete)
-    tree_id, size, res = None, 0, 0.0
-    while True:
-        tok, start, pos = _token(buf, pos, complete)
-        if not tok:
-            raise MapFormatError(source, start, "header ends without a 'data' line "
-                                 "(truncated or not an OctoMap file)")
-        if tok == b"data":
-            pos = _skip_line(buf, pos, complete)
-            break
-        if tok.startswith(b"#"):
-            pos = _skip_line(buf, pos, complete)
-        elif tok == b"id":
-            val, vstart, pos = _token(buf, pos, complete)
-            if not val:
-                raise MapFormatError(source, vstart, "header 'id' has no value")
-            try:
-                tree_id = val.decode("ascii")
-            except UnicodeDecodeError:
-                raise MapFormatError(source, vstart, "header id is not ASCII") from None
-        elif tok == b"size":
-            val, vstart, pos = _number(buf, pos, complete, _UNSIGNED_RE)
-            if not val or int(val) > 0xFFFFFFFF:  # OctoMap reads an unsigned
-                raise MapFormatError(source, vstart, f"header size {buf[vstart:vstart + 40]!r}"
-                                     " is not a node count")
-            size = int(val)
-        elif tok == b"res":
-            val, vstart, pos = _number(buf, pos, complete, _DOUBLE_RE)
-            if not val:
-                raise MapFormatError(source, vstart, f"header res {buf[vstart:vstart + 40]!r} "
-                                     "is not a number")
-            res = float(val)
-            if not res > 0:
-                raise MapFormatError(source, vstart, f"header res {res!r} must be a "
-                                     "positive resolution in metres")
-            _check_header_resolution(res, source, vstart)
-        else:  # unknown keyword: OctoMap warns and skips the line
-            pos = _skip_line(buf, pos, complete)
-    if not tree_id:
-        raise MapFormatError(source, pos, "header has no 'id'")
-    if res <= 0:
-        raise MapFormatError(source, pos, "header has no positive 'res'")
-    if tree_id == "1":  # deprecated id, rewritten by OctoMap
-        tree_id = "OcTree"
-    return Header(binary, tree_id, size, res, pos)
-
-
-def _parse_header_prefix(read_prefix, total: int, source) -> Header:
-    """Parse a header from ``read_prefix(n)`` (the first ``n`` bytes of ``total``), reading
-    64 KiB first and doubling while the header runs on."""
-    n = _HEADER_WINDOW
-    while True:
-        complete = n >= total
-        try:
-            return _parse_header(read_prefix(n), source, complete)
-        except _HeaderCut:
-            n *= 2
-
-
-def _parse_legacy(buf: bytes, source) -> Header:
-    """Old headerless ``.bt``: int32 tree type 3, float64 resolution, uint32 size."""
-    if len(buf) < 16 or int(np.frombuffer(buf, "<i4", 1, 0)[0]) != 3:
-        raise MapFormatError(source, 0, "not an OctoMap binary file: the first line does not "
-                             f"start with {BINARY_FILE_HEADER.decode()!r} and it is no legacy "
-                             "binary OcTree (type 3)")
-    res = float(np.frombuffer(buf, "<f8", 1, 4)[0])
-    if not (math.isfinite(res) and res > 0):
-        raise MapFormatError(source, 4, f"legacy header resolution {res!r} is not positive")
-    _check_header_resolution(res, source, 4)
-    size = int(np.frombuffer(buf, "<u4", 1, 12)[0])
-    return Header(True, "OcTree", size, res, 16, legacy=True)
 
 
 def _check_resolution(resolution, name="resolution") -> float:
@@ -502,12 +328,12 @@ def _decode_body(buf, start, source, binary, tree_id, params, strict, claimed_si
 
 def _decode_image(buf: np.ndarray, source, params, strict, allow_legacy: bool,
                   max_leaves=None):
-    raw = buf[:_HEADER_WINDOW].tobytes()
+    raw = buf[:HEADER_WINDOW].tobytes()
     if allow_legacy and not raw.startswith(BINARY_FILE_HEADER) and \
             not raw.startswith(FULL_FILE_HEADER):
-        header = _parse_legacy(raw, source)
+        header = parse_legacy(raw, source)
     else:
-        header = _parse_header_prefix(lambda n: buf[:n].tobytes(), buf.size, source)
+        header = parse_header_prefix(lambda n: buf[:n].tobytes(), buf.size, source)
     if header.size == 0:
         # OctoMap reads no body for size 0 (an empty tree is written as a bare header).
         if strict and header.data_offset != buf.size:
@@ -613,16 +439,16 @@ def read_header(path) -> Header:
     check_input_file(path)
     with open(path, "rb") as f:
         total = os.fstat(f.fileno()).st_size
-        raw = f.read(_HEADER_WINDOW)
+        raw = f.read(HEADER_WINDOW)
         if is_bt and not raw.startswith(BINARY_FILE_HEADER) and \
                 not raw.startswith(FULL_FILE_HEADER):
-            return _parse_legacy(raw, path)
+            return parse_legacy(raw, path)
 
         def prefix(n: int) -> bytes:
             f.seek(0)
             return f.read(n)
 
-        return _parse_header_prefix(prefix, total, path)
+        return parse_header_prefix(prefix, total, path)
 
 
 def load(path, *, params: _map.OccupancyParams | None = None, strict: bool = True,
@@ -685,7 +511,7 @@ def to_bytes(occupancy_map: _map.OccupancyMap, binary: bool = True, *,
     body, nodes = _encode(occupancy_map, bool(binary))
     if not header:
         return body
-    return _header_bytes(bool(binary), "OcTree", nodes, occupancy_map.resolution) + body
+    return header_bytes(bool(binary), "OcTree", nodes, occupancy_map.resolution) + body
 
 
 def from_bytes(data, binary: bool | None = None, resolution: float | None = None,
