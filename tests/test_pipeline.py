@@ -188,6 +188,24 @@ def test_merge_many_refine_none_equals_fold():
         merge_many([m1, m2], [T, T])
 
 
+@pytest.mark.slow  # the 3-map fuse_many compilation alone: ~26 s on 2 busy cores
+def test_merge_many_three_maps_pairs_chain_refine_none():
+    """test_merge_many_star_and_chain without ICP: a chain
+    ``pairs={(0, 1): T_0_1, (1, 2): T_1_2}`` composes to ``T_0_2 = T_0_1 T_1_2`` and merges
+    exactly as the star ``T_inits=[T_0_1, T_0_2]`` does."""
+    m1, m2, T = small_pair()
+    T_2_3 = transform_from_xyz_rpy(0.3, -0.2, 0.0, 0.0, 0.0, 0.2)
+    m3 = m2  # a third robot's map: robot 2's, placed 0.36 m / 0.2 rad further on
+    star, reps_s = merge_many([m1, m2, m3], [T, T @ T_2_3], refine="none")
+    chain, reps_c = merge_many([m1, m2, m3], pairs={(0, 1): T, (1, 2): T_2_3}, refine="none")
+    assert len(reps_c) == 2 and all(r.icp is None for r in reps_c)
+    np.testing.assert_allclose(reps_c[1].T_1_2, T_2_3, atol=1e-9)  # each pair: parent <- child
+    assert tree.equal(chain, star)
+    assert chain.num_leaves > max(m1.num_leaves, m2.num_leaves)
+    with pytest.raises(ValueError, match="parent"):
+        merge_many([m1, m2, m3], pairs={(0, 1): T, (0, 2): T, (1, 2): T}, refine="none")
+
+
 @pytest.mark.slow  # three registrations and two fuse_many compilations: ~1 min on 2 cores
 def test_merge_many_star_and_chain():
     m1, m2, T = small_pair()
