@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from .._fileutil import check_input_file
-from ..io import load, num_nodes, read_header
+from .. import morton
+from ..io import load, read_header
 
 EPILOG = """examples:
   octomerge info room.bt
@@ -31,15 +32,43 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+#: Leaves summarised per step: bounds the per-leaf float64 temporaries to ~100 MB.
+_CHUNK = 1 << 20
+
+
 def summarize(path: Path, lenient: bool = False) -> dict:
-    """The facts ``info`` prints, as a JSON-able dict."""
+    """The facts ``info`` prints, as a JSON-able dict. The leaves are summarised in chunks,
+    so the memory taken beyond the loaded map stays bounded."""
     check_input_file(path)
     header = read_header(path)
     m = load(path, strict=not lenient)
-    lv = m.leaves()
-    occupied = np.asarray(m.is_occupied())[: m.num_leaves]
-    volume = lv.sizes ** 3
-    depth_counts = np.bincount(lv.depths, minlength=17)
+    n = m.num_leaves
+    words, all_depths = np.asarray(m.code)[:n], np.asarray(m.depth)[:n]
+    all_log_odds = np.asarray(m.log_odds)[:n]
+    threshold = np.float32(m.params.occupancy_threshold_log_odds)
+    depth_counts = np.zeros(17, np.int64)
+    occupied_leaves = nodes = 0
+    volume = {True: 0.0, False: 0.0}
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for a in range(0, n, _CHUNK):
+        b = min(a + _CHUNK, n)
+        first = max(a - 1, 0)  # the previous leaf: nodes a leaf opens depend on it
+        codes = morton.join_codes(words[first:b])
+        depths = all_depths[first:b].astype(np.int32)
+        opened = morton.group_sizes(codes, depths)
+        nodes += int(opened[a - first:].sum())
+        codes, depths = codes[a - first:], depths[a - first:]
+        occupied = all_log_odds[a:b] >= threshold  # OccupancyMap.is_occupied, on the host
+        sizes = morton.node_size(depths, m.resolution)
+        cubes = sizes ** 3
+        volume[True] += float(cubes[occupied].sum())
+        volume[False] += float(cubes[~occupied].sum())
+        occupied_leaves += int(occupied.sum())
+        depth_counts += np.bincount(depths, minlength=17)
+        centers = morton.keys_to_coords(morton.codes_to_keys(codes), m.resolution, depths)
+        half = sizes[:, None] / 2
+        lo = np.minimum(lo, (centers - half).min(axis=0))
+        hi = np.maximum(hi, (centers + half).max(axis=0))
     out = {
         "path": str(path),
         "format": "bt (binary, maximum likelihood)" if header.binary else "ot (full log-odds)",
@@ -47,23 +76,22 @@ def summarize(path: Path, lenient: bool = False) -> dict:
         "legacy_header": header.legacy,
         "file_bytes": path.stat().st_size,
         "resolution_m": m.resolution,
-        "nodes": num_nodes(m),
+        "nodes": nodes,
         "header_size": header.size,
-        "leaves": m.num_leaves,
+        "leaves": n,
         "leaves_per_depth": {str(d): int(c) for d, c in enumerate(depth_counts) if c},
-        "occupied_leaves": int(occupied.sum()),
-        "free_leaves": int((~occupied).sum()),
-        "occupied_volume_m3": float(volume[occupied].sum()),
-        "free_volume_m3": float(volume[~occupied].sum()),
+        "occupied_leaves": occupied_leaves,
+        "free_leaves": n - occupied_leaves,
+        "occupied_volume_m3": volume[True],
+        "free_volume_m3": volume[False],
         "bounds_min_m": None,
         "bounds_max_m": None,
         "log_odds_range": None,
     }
-    if m.num_leaves:
-        half = lv.sizes[:, None] / 2
-        out["bounds_min_m"] = [float(v) for v in (lv.centers - half).min(axis=0)]
-        out["bounds_max_m"] = [float(v) for v in (lv.centers + half).max(axis=0)]
-        out["log_odds_range"] = [float(lv.log_odds.min()), float(lv.log_odds.max())]
+    if n:
+        out["bounds_min_m"] = [float(v) for v in lo]
+        out["bounds_max_m"] = [float(v) for v in hi]
+        out["log_odds_range"] = [float(all_log_odds.min()), float(all_log_odds.max())]
     return out
 
 
