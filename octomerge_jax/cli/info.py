@@ -45,7 +45,7 @@ def summarize(path: Path, lenient: bool = False) -> dict:
     n = m.num_leaves
     words, all_depths = np.asarray(m.code)[:n], np.asarray(m.depth)[:n]
     all_log_odds = np.asarray(m.log_odds)[:n]
-    threshold = np.float32(m.params.occupancy_threshold_log_odds)
+    all_occupied = np.asarray(m.is_occupied())[:n]
     depth_counts = np.zeros(17, np.int64)
     occupied_leaves = nodes = 0
     volume = {True: 0.0, False: 0.0}
@@ -58,7 +58,7 @@ def summarize(path: Path, lenient: bool = False) -> dict:
         opened = morton.group_sizes(codes, depths)
         nodes += int(opened[a - first:].sum())
         codes, depths = codes[a - first:], depths[a - first:]
-        occupied = all_log_odds[a:b] >= threshold  # OccupancyMap.is_occupied, on the host
+        occupied = all_occupied[a:b]
         sizes = morton.node_size(depths, m.resolution)
         cubes = sizes ** 3
         volume[True] += float(cubes[occupied].sum())
