@@ -29,8 +29,10 @@ def test_merge_batch_matches_merge_and_isolates_bad_pairs():
     assert [r.status for r in res] == ["ok", "error", "ok", "error", "error"]
     assert [r.kind for r in res[1:2] + res[3:]] == ["resolution", "transform", "no_overlap"]
     assert "resolutions differ" in res[1].message and "NaN or infinite" in res[3].message
-    for k in (0, 2):
-        assert res[k].report.epsilon_r < 0.1 and res[k].report.epsilon_t < 0.15
+    for k in (0, 2):  # guesses at epsilon_t 0.150 / 0.130 m; merges reach ~0.02 / 0.03 m
+        r = res[k].report
+        assert r.epsilon_r < 0.05 and r.epsilon_t < 0.06, (r.epsilon_r, r.epsilon_t)
+        assert r.epsilon_t < r.epsilon_t_init / 2.5
     # ... and give what a single merge gives
     single, rep = merge(m1, m2, perturbed(), T_1_2_true=T)
     b = res[0].report

@@ -606,3 +606,89 @@ def test_return_report_still_works_with_a_deprecation_warning():
     with pytest.warns(DeprecationWarning, match="fuse_many_with_report"):
         many = F.fuse_many([m1, m2], return_report=True)
     assert isinstance(many, F.FuseResult) and tree.equal(many.map, ref.map)
+
+
+# ----------------------------------------------------------------------------- every depth
+
+
+def ref_fuse_cells(m1, m2, rule="sum", lmin=LMIN, lmax=LMAX):
+    """Brute force for maps with coarse leaves: the common refinement of both maps' leaves
+    (a node is split only where one map has finer leaves inside it), each cell combined and
+    clamped, then pruned maximally. Leaves of any depth 0..16; no depth-16 expansion."""
+    sides = []
+    for m in (m1, m2):
+        lv = m.leaves()
+        sides.append((lv.codes.astype(np.uint64), lv.depths.astype(np.int64), lv.log_odds))
+    out = []
+
+    def covering(side, code, d):
+        """The value of the leaf covering node (code, d), 'inside' if finer leaves lie
+        within it, or None (unknown)."""
+        codes, depths, vals = side
+        i = int(np.searchsorted(codes, np.uint64(code), side="right")) - 1
+        if i >= 0 and depths[i] <= d and code < int(codes[i]) + int(span(depths[i])):
+            return vals[i]
+        j = i + 1
+        if j < codes.size and int(codes[j]) < code + int(span(d)):
+            return "inside"
+        return None
+
+    def rec(code, d):
+        a, b = covering(sides[0], code, d), covering(sides[1], code, d)
+        if isinstance(a, str) or isinstance(b, str):
+            for c in range(8):
+                rec(code + c * int(span(d + 1)), d + 1)
+            return
+        if a is None and b is None:
+            return
+        if a is None or b is None:
+            v = a if b is None else b
+        else:
+            v = a + b if rule == "sum" else max(a, b)
+        out.append((code, d, np.clip(np.float32(v), np.float32(lmin), np.float32(lmax))))
+
+    rec(0, 0)
+    codes, depths, vals = (np.array(x) for x in zip(*out))
+    return ref_prune(codes.astype(np.uint64), depths, vals.astype(np.float32))
+
+
+def chain_map(rng, path_child, leaf_children, extra=()):
+    """Leaves at every depth 1..16: at each depth, leaves at ``leaf_children`` of the node
+    on the path, which continues into ``path_child``; at depth 16 the path node is a leaf
+    too. ``extra``: more (code, depth) leaves."""
+    codes, depths = [], []
+    code = 0
+    for d in range(1, 17):
+        for c in leaf_children:
+            codes.append(code + c * int(span(d)))
+            depths.append(d)
+        code += path_child * int(span(d))
+    codes.append(code)
+    depths.append(16)
+    for c, d in extra:
+        codes.append(c)
+        depths.append(d)
+    values = VALUES[rng.integers(VALUES.size, size=len(codes))]
+    return omap.from_leaves(np.array(codes, np.uint64), np.array(depths), values, RES,
+                            capacity=CAP_IN)
+
+
+@pytest.mark.parametrize("rule", ["sum", "max"])
+def test_fuse_with_leaves_at_every_depth(rule):
+    """Coarse leaves of every size 1..16 in both maps, each map's coarse leaves holding the
+    other's fine chain (thesis case 3 both ways), against the common-refinement reference."""
+    rng = np.random.default_rng(8)
+    m1 = chain_map(rng, path_child=7, leaf_children=(0, 3))  # depth-1 leaf 0 holds m2's chain
+    m2 = chain_map(rng, path_child=0, leaf_children=(5, 6), extra=[(7 * int(span(1)) + 5 *
+                   int(span(2)), 2)])  # depth-2 leaf inside m1's path, over m1's finer leaves
+    assert sorted(set(m1.leaves().depths.tolist())) == list(range(1, 17))
+    out = F.fuse(m1, m2, rule, capacity=CAP_OUT)
+    assert_same_leaves(out, ref_fuse_cells(m1, m2, rule))
+    # the same reference agrees with the voxel brute force where expansion is affordable
+    small1, small2 = (omap.from_leaves(*(np.asarray(x)[m.leaves().depths >= 12] for x in (
+        m.leaves().codes, m.leaves().depths, m.leaves().log_odds)), RES, capacity=CAP_IN)
+        for m in (m1, m2))
+    assert_same_leaves(F.fuse(small1, small2, rule, capacity=CAP_OUT),
+                       ref_fuse([small1, small2], rule))
+    assert_same_leaves(F.fuse(small1, small2, rule, capacity=CAP_OUT),
+                       ref_fuse_cells(small1, small2, rule))

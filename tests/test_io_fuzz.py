@@ -15,6 +15,8 @@ from octomerge_jax import morton
 from octomerge_jax.io import MapFormatError, from_bytes, load, read_header, to_bytes
 from octomerge_jax.map import from_leaves
 
+import fuzz_inputs
+
 
 def _sample_map():
     rng = np.random.default_rng(0)
@@ -124,3 +126,30 @@ def test_unmutated_images_load():
         path = _DIR / f"clean.{ext}"
         path.write_bytes(data)
         assert load(path).num_leaves > 0
+
+
+# ----------------------------------------------------------------------------- campaign slice
+# A small seeded slice of the fuzz campaign (tests/fuzz_inputs.py; run it for longer as a
+# script): mutated maps, scan files, manifests and configs give a result or a documented
+# one-line error naming the file; ``info`` / ``convert`` on mutated maps exit 0 or 1 with one
+# error line and leave no file behind.
+
+
+@pytest.mark.parametrize("targets, cli, cases", [
+    (("bt", "ot"), True, 12),
+    (("graph", "pcd", "dat"), False, 40),
+    (("toml", "json"), False, 40),
+])
+def test_fuzz_campaign_slice(targets, cli, cases):
+    res = fuzz_inputs.campaign(seed=7, cases=cases, targets=targets, cli=cli, timeout=60)
+    assert res["failures"] == []
+    for t in targets:
+        assert sum(res["counts"][t].values()) == cases
+
+
+@pytest.mark.xfail(strict=True, reason="manifest rows: too few columns (AttributeError) and "
+                   "non-finite guesses, fixed in the CLI half of issue 39; remove this mark "
+                   "once merged")
+def test_fuzz_campaign_slice_manifests():
+    res = fuzz_inputs.campaign(seed=7, cases=40, targets=("manifest",))
+    assert res["failures"] == []

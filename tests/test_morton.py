@@ -172,3 +172,22 @@ def test_code_arithmetic_on_word_columns_matches_uint64():
     np.testing.assert_array_equal(np.asarray(morton.code_digit_sum(hi, lo)), want_sum)
     perm = rng.permutation(codes.size)
     np.testing.assert_array_equal(np.asarray(morton.code_less(hi, lo, hi[perm], lo[perm])), c < c[perm])
+
+
+def test_end_words_at_every_depth():
+    """``end_words`` = code + 8^(16 - depth) for aligned codes at each depth 0..16, including
+    the carry from the low word into the high one and the end of the key space."""
+    codes, depths = [], []
+    for depth in range(17):
+        span = 1 << (3 * (16 - depth))
+        top = (1 << 48) - span  # the last aligned node
+        cells = [0, span, top, top - span, (1 << 24) - span]  # the last: ends at the word boundary
+        cells += [(((1 << 48) - 1) // 7 * k) & ~(span - 1) for k in range(1, 7)]
+        cells = sorted({c for c in cells if c >= 0})
+        codes += cells
+        depths += [depth] * len(cells)
+    codes = np.array(codes, np.uint64)
+    spans = np.uint64(1) << (np.uint64(3) * (16 - np.array(depths, np.uint64)))
+    ends = np.asarray(morton.end_words(jnp.asarray(morton.split_codes(codes)), jnp.asarray(depths)))
+    # 2^48 splits into (SENTINEL_HI, 0), the documented end of the key space
+    np.testing.assert_array_equal(ends, morton.split_codes(codes + spans))

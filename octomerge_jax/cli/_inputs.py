@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .._fileutil import check_input_file
 from ..io import MapFormatError, load
 from ..io.bags import BagMap, is_bag, select_map
 from ..map import OccupancyMap
@@ -29,9 +30,11 @@ def _pick(values, index: int):
 
 
 def check_map_input(path: Path) -> None:
-    """Raise ``CliError`` if ``path`` is neither a map file nor a bag."""
-    if not (path.is_file() or (is_bag(path) and path.exists())):
-        raise CliError(f"{path}: no such file")
+    """Raise ``FileNotFoundError`` / ``IsADirectoryError`` naming ``path`` if it is neither a
+    map file nor a bag (a ROS 2 bag is a folder)."""
+    if is_bag(path) and path.exists():
+        return
+    check_input_file(path)
 
 
 def load_map_inputs(paths, args, *, strict: bool = True) -> list[tuple[OccupancyMap, BagMap | None]]:

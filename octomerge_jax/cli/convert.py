@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .._fileutil import check_input_file
 from .._fileutil import check_not_input
 from ..io import num_nodes, save
 from ..io.bags import write_bag

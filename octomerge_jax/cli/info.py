@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import num_nodes, read_header
+from .. import morton
+from .._fileutil import check_input_file
+from ..io import read_header
 from ..io.bags import is_bag
-from ._common import CliError
 from ._inputs import add_bag_options, load_map_inputs
 
 EPILOG = """examples:
@@ -35,23 +36,50 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+#: Leaves summarised per step: bounds the per-leaf float64 temporaries to ~100 MB.
+_CHUNK = 1 << 20
+
+
 def summarize(path: Path, lenient: bool = False, args=None) -> dict:
     """The facts ``info`` prints, as a JSON-able dict (for a bag: of the map ``args.topic`` /
-    ``args.stamp`` choose, with its topic, stamp, frame and payload size)."""
+    ``args.stamp`` choose, with its topic, stamp, frame and payload size). The leaves are
+    summarised in chunks, so the memory taken beyond the loaded map stays bounded."""
     if is_bag(path):
         (m, b), = load_map_inputs([path], args, strict=not lenient)
         binary, tree_id, legacy, size, nbytes = b.binary, b.tree_id, False, None, b.payload_bytes
     else:
-        if not path.is_file():
-            raise CliError(f"{path}: no such file")
+        check_input_file(path)
         header = read_header(path)
         (m, _), = load_map_inputs([path], args, strict=not lenient)
         binary, tree_id, legacy, size, nbytes = (header.binary, header.tree_id, header.legacy, header.size,
                                                  path.stat().st_size)
-    lv = m.leaves()
-    occupied = np.asarray(m.is_occupied())[: m.num_leaves]
-    volume = lv.sizes ** 3
-    depth_counts = np.bincount(lv.depths, minlength=17)
+    n = m.num_leaves
+    words, all_depths = np.asarray(m.code)[:n], np.asarray(m.depth)[:n]
+    all_log_odds = np.asarray(m.log_odds)[:n]
+    all_occupied = np.asarray(m.is_occupied())[:n]
+    depth_counts = np.zeros(17, np.int64)
+    occupied_leaves = nodes = 0
+    volume = {True: 0.0, False: 0.0}
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for a in range(0, n, _CHUNK):
+        b = min(a + _CHUNK, n)
+        first = max(a - 1, 0)  # the previous leaf: nodes a leaf opens depend on it
+        codes = morton.join_codes(words[first:b])
+        depths = all_depths[first:b].astype(np.int32)
+        opened = morton.group_sizes(codes, depths)
+        nodes += int(opened[a - first:].sum())
+        codes, depths = codes[a - first:], depths[a - first:]
+        occupied = all_occupied[a:b]
+        sizes = morton.node_size(depths, m.resolution)
+        cubes = sizes ** 3
+        volume[True] += float(cubes[occupied].sum())
+        volume[False] += float(cubes[~occupied].sum())
+        occupied_leaves += int(occupied.sum())
+        depth_counts += np.bincount(depths, minlength=17)
+        centers = morton.keys_to_coords(morton.codes_to_keys(codes), m.resolution, depths)
+        half = sizes[:, None] / 2
+        lo = np.minimum(lo, (centers - half).min(axis=0))
+        hi = np.maximum(hi, (centers + half).max(axis=0))
     out = {
         "path": str(path),
         "format": "bt (binary, maximum likelihood)" if binary else "ot (full log-odds)",
@@ -59,23 +87,22 @@ def summarize(path: Path, lenient: bool = False, args=None) -> dict:
         "legacy_header": legacy,
         "file_bytes": nbytes,
         "resolution_m": m.resolution,
-        "nodes": num_nodes(m),
-        "header_size": num_nodes(m) if size is None else size,
-        "leaves": m.num_leaves,
+        "nodes": nodes,
+        "header_size": nodes if size is None else size,
+        "leaves": n,
         "leaves_per_depth": {str(d): int(c) for d, c in enumerate(depth_counts) if c},
-        "occupied_leaves": int(occupied.sum()),
-        "free_leaves": int((~occupied).sum()),
-        "occupied_volume_m3": float(volume[occupied].sum()),
-        "free_volume_m3": float(volume[~occupied].sum()),
+        "occupied_leaves": occupied_leaves,
+        "free_leaves": n - occupied_leaves,
+        "occupied_volume_m3": volume[True],
+        "free_volume_m3": volume[False],
         "bounds_min_m": None,
         "bounds_max_m": None,
         "log_odds_range": None,
     }
-    if m.num_leaves:
-        half = lv.sizes[:, None] / 2
-        out["bounds_min_m"] = [float(v) for v in (lv.centers - half).min(axis=0)]
-        out["bounds_max_m"] = [float(v) for v in (lv.centers + half).max(axis=0)]
-        out["log_odds_range"] = [float(lv.log_odds.min()), float(lv.log_odds.max())]
+    if n:
+        out["bounds_min_m"] = [float(v) for v in lo]
+        out["bounds_max_m"] = [float(v) for v in hi]
+        out["log_odds_range"] = [float(all_log_odds.min()), float(all_log_odds.max())]
     if is_bag(path):
         out.update(bag_topic=b.topic, bag_stamp_s=b.stamp_ns / 1e9, bag_frame_id=b.frame_id)
     return out

@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+from .._fileutil import check_input_file
 from .._fileutil import check_not_input
 from ..pipeline import COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, REFINE_CHOICES, MergeConfig, load_config
 from ..io import save

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["MapFormatError"]
+__all__ = ["MapFormatError", "MapTooLargeError"]
 
 
 class MapFormatError(ValueError):
@@ -28,3 +28,8 @@ class MapFormatError(ValueError):
 
     def __reduce__(self):  # picklable across processes
         return (type(self), (self.source, self.offset, self.reason))
+
+
+class MapTooLargeError(MapFormatError):
+    """A valid octree with more leaves than the reader's ``max_leaves`` limit (a
+    ``MapFormatError``, so callers that handle bad files handle it too)."""

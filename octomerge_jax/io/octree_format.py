@@ -59,21 +59,31 @@ from __future__ import annotations
 
 import array
 import math
-import re
-from dataclasses import dataclass
+import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from .. import map as _map
 from .. import morton
-from .._fileutil import atomic_output
+from .._fileutil import atomic_output, check_input_file
+from ..budget import check_allocation
 from . import _preorder
-from .errors import MapFormatError
+from ._header import (BINARY_FILE_HEADER, FULL_FILE_HEADER, HEADER_WINDOW, MAX_RESOLUTION,
+                      MIN_RESOLUTION, Header, format_resolution, header_bytes, parse_header_prefix,
+                      parse_legacy)
+from .errors import MapFormatError, MapTooLargeError
 from ..tree import num_nodes
 
 __all__ = [
     "BINARY_FILE_HEADER",
+    "DEFAULT_MAX_LEAVES",
+    "READ_BYTES_PER_LEAF",
+    "READ_BYTES_PER_RECORD",
+    "reading_bytes",
+    "MAX_RESOLUTION",
+    "MIN_RESOLUTION",
     "FULL_FILE_HEADER",
     "Header",
     "load",
@@ -88,18 +98,12 @@ __all__ = [
     "max_likelihood_prune",
 ]
 
-BINARY_FILE_HEADER = b"# Octomap OcTree binary file"
-FULL_FILE_HEADER = b"# Octomap OcTree file"
-_COMMENT = b"# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
 BYTES_SOURCE = "<bytes>"
 
 #: ``.ot`` node payload bytes (before the child mask) per supported tree id.
 _OT_PAYLOAD = {"OcTree": 4, "OcTreeStamped": 4, "ColorOcTree": 7}
-_WS = b" \t\n\r\v\f"
-_MAX_TOKEN = 4096
-_TOKEN_RE = re.compile(rb"[^ \t\n\r\v\f]{0,%d}" % _MAX_TOKEN)
-#: Headers are ~130 bytes; we parse at most this much of a file as header.
-_HEADER_WINDOW = 1 << 16
+#: Default ``max_leaves`` of the readers (about 4.5 GB of host memory to read; see ``load``).
+DEFAULT_MAX_LEAVES = 100_000_000
 
 # 2-bit child states of a .bt record word: bit j of INNER/OCC/FREE set iff child j is such.
 _w = np.arange(1 << 16, dtype=np.uint32)
@@ -108,40 +112,14 @@ _weights = (1 << np.arange(8)).astype(np.uint32)
 _BT_INNER = ((_states == 3) @ _weights).astype(np.uint8)
 _BT_OCC = ((_states == 2) @ _weights).astype(np.uint8)
 _BT_FREE = ((_states == 1) @ _weights).astype(np.uint8)
+_BT_LEAF = _BT_OCC | _BT_FREE
 del _w, _states, _weights
 #: bit shift of child slot j of a node at depth d: ``j << _CHILD_SHIFT[d]``.
+_U64 = np.uint64
 _CHILD_SHIFT = np.array([3 * (15 - d) if d < 16 else 0 for d in range(17)], dtype=np.uint64)
 
 
-@dataclass(frozen=True)
-class Header:
-    """A parsed OctoMap file header.
-
-    ``binary`` (``.bt``) or full (``.ot``); ``tree_id`` as written (``"1"`` -> ``"OcTree"``);
-    ``size`` the claimed node count; ``resolution`` metres; ``data_offset`` the first body
-    byte; ``legacy`` for the old headerless ``.bt`` layout.
-    """
-
-    binary: bool
-    tree_id: str
-    size: int
-    resolution: float
-    data_offset: int
-    legacy: bool = False
-
-
 # ----------------------------------------------------------------------------- helpers
-
-
-def format_resolution(resolution: float) -> str:
-    """``res`` as C++ ``ostream << double`` prints it (``%g``: 6 significant digits)."""
-    return f"{float(resolution):g}"
-
-
-def _header_bytes(binary: bool, tree_id: str, size: int, resolution: float) -> bytes:
-    first = BINARY_FILE_HEADER if binary else FULL_FILE_HEADER
-    tail = f"id {tree_id}\nsize {int(size)}\nres {format_resolution(resolution)}\ndata\n"
-    return first + b"\n" + _COMMENT + tail.encode("ascii")
 
 
 def _as_uint8(data) -> np.ndarray:
@@ -159,96 +137,6 @@ def _as_uint8(data) -> np.ndarray:
     if values.size and (values.min() < -128 or values.max() > 255):
         raise ValueError("data values must be bytes (-128..255)")
     return values.astype(np.uint8)
-
-
-def _skip_ws(buf: bytes, pos: int) -> int:
-    n = len(buf)
-    while pos < n and buf[pos] in _WS:
-        pos += 1
-    return pos
-
-
-def _token(buf: bytes, pos: int, source) -> tuple[bytes, int, int]:
-    """Next whitespace-delimited token: (token, start, end). Empty token at end of data."""
-    start = _skip_ws(buf, pos)
-    m = _TOKEN_RE.match(buf, start)
-    end = m.end()
-    if end - start >= _MAX_TOKEN:
-        raise MapFormatError(source, start, "header token too long (not an OctoMap header)")
-    return buf[start:end], start, end
-
-
-def _skip_line(buf: bytes, pos: int) -> int:
-    nl = buf.find(b"\n", pos)
-    return len(buf) if nl < 0 else nl + 1
-
-
-def _parse_header(buf: bytes, source) -> Header:
-    """Parse a file image's header (``AbstractOcTree::readHeader`` semantics)."""
-    if buf.startswith(BINARY_FILE_HEADER):
-        binary = True
-    elif buf.startswith(FULL_FILE_HEADER):
-        binary = False
-    else:
-        raise MapFormatError(source, 0, "not an OctoMap file: the first line must start with "
-                             f"{BINARY_FILE_HEADER.decode()!r} or {FULL_FILE_HEADER.decode()!r}")
-    pos = _skip_line(buf, 0)
-    tree_id, size, res = None, 0, 0.0
-    while True:
-        tok, start, pos = _token(buf, pos, source)
-        if not tok:
-            raise MapFormatError(source, start, "header ends without a 'data' line "
-                                 "(truncated or not an OctoMap file)")
-        if tok == b"data":
-            pos = _skip_line(buf, pos)
-            break
-        if tok.startswith(b"#"):
-            pos = _skip_line(buf, pos)
-        elif tok in (b"id", b"size", b"res"):
-            val, vstart, pos = _token(buf, pos, source)
-            if not val:
-                raise MapFormatError(source, vstart, f"header '{tok.decode()}' has no value")
-            if tok == b"id":
-                try:
-                    tree_id = val.decode("ascii")
-                except UnicodeDecodeError:
-                    raise MapFormatError(source, vstart, "header id is not ASCII") from None
-            elif tok == b"size":
-                if not val.isdigit() or len(val) > 12:
-                    raise MapFormatError(source, vstart, f"header size {val[:40]!r} is not a "
-                                         "node count")
-                size = int(val)
-            else:
-                try:
-                    res = float(val.decode("ascii"))
-                except (UnicodeDecodeError, ValueError):
-                    raise MapFormatError(source, vstart, f"header res {val[:40]!r} is not a "
-                                         "number") from None
-                if not (math.isfinite(res) and res > 0):
-                    raise MapFormatError(source, vstart, f"header res {res!r} must be a "
-                                         "positive resolution in metres")
-        else:  # unknown keyword: OctoMap warns and skips the line
-            pos = _skip_line(buf, pos)
-    if not tree_id:
-        raise MapFormatError(source, pos, "header has no 'id'")
-    if res <= 0:
-        raise MapFormatError(source, pos, "header has no positive 'res'")
-    if tree_id == "1":  # deprecated id, rewritten by OctoMap
-        tree_id = "OcTree"
-    return Header(binary, tree_id, size, res, pos)
-
-
-def _parse_legacy(buf: bytes, source) -> Header:
-    """Old headerless ``.bt``: int32 tree type 3, float64 resolution, uint32 size."""
-    if len(buf) < 16 or int(np.frombuffer(buf, "<i4", 1, 0)[0]) != 3:
-        raise MapFormatError(source, 0, "not an OctoMap binary file: the first line does not "
-                             f"start with {BINARY_FILE_HEADER.decode()!r} and it is no legacy "
-                             "binary OcTree (type 3)")
-    res = float(np.frombuffer(buf, "<f8", 1, 4)[0])
-    if not (math.isfinite(res) and res > 0):
-        raise MapFormatError(source, 4, f"legacy header resolution {res!r} is not positive")
-    size = int(np.frombuffer(buf, "<u4", 1, 12)[0])
-    return Header(True, "OcTree", size, res, 16, legacy=True)
 
 
 def _check_resolution(resolution, name="resolution") -> float:
@@ -273,8 +161,56 @@ def _stream_error(source, start: int, rec_size: int, total: int, err) -> MapForm
     return MapFormatError(source, min(start + err.record * rec_size, total), err.reason)
 
 
-def _decode_bt(buf: np.ndarray, start: int, source, params):
-    """Body of a ``.bt`` at ``buf[start:]`` -> (codes, depths, log_odds, nodes, end)."""
+#: Peak bytes of host memory per record of the stream while parsing its structure
+#: (``_preorder.tree_length`` + ``stream_layout``), and per leaf while generating and sorting
+#: the leaves (uint64 sort key, int32 code words, depth, log-odds); see ``reading_bytes``.
+READ_BYTES_PER_RECORD = 96
+READ_BYTES_PER_LEAF = 29
+
+
+def reading_bytes(records: int, leaves: int) -> int:
+    """Peak host bytes to read a tree of ``records`` stream records and ``leaves`` leaves
+    into a map (the map's padded arrays included)."""
+    cap = _map.bucket_capacity(leaves) if leaves else 0
+    return READ_BYTES_PER_RECORD * records + READ_BYTES_PER_LEAF * leaves + 16 * cap
+
+
+def _check_size(source, records: int, leaves: int, max_leaves: int | None) -> None:
+    """Refuse a tree over ``max_leaves`` leaves or over the memory budget, before allocating."""
+    limit = DEFAULT_MAX_LEAVES if max_leaves is None else int(max_leaves)
+    if leaves > limit:
+        raise MapTooLargeError(source, None, f"the tree holds {leaves:,} leaves, over the "
+                               f"limit of {limit:,} (max_leaves / --max-leaves raises it)")
+    check_allocation(reading_bytes(records, leaves),
+                     f"reading {source} ({records:,} nodes, {leaves:,} leaves)")
+
+
+class _Leaves(NamedTuple):
+    """Leaves read from a stream, sorted by code."""
+
+    words: np.ndarray  # (n, 2) int32 two-word Morton codes (``morton.split_codes``)
+    depths: np.ndarray  # (n,) uint8 0..16
+    log_odds: np.ndarray  # (n,) float32
+
+
+def _sorted_leaves(key: np.ndarray, value_of_bit) -> _Leaves:
+    """``key (n,)`` uint64 = ``code << 8 | depth << 1 | bit`` -> leaves sorted by code, with
+    ``log_odds = value_of_bit[bit]``. Sorts ``key`` in place (no index array)."""
+    key.sort(kind="stable")  # timsort: the keys come as sorted runs
+    words = np.empty((key.size, 2), np.int32)
+    np.right_shift(key, _U64(8 + morton.WORD_BITS), out=words[:, 0], casting="unsafe")
+    np.right_shift(key, _U64(8), out=words[:, 1], casting="unsafe")
+    words[:, 1] &= np.int32(morton.WORD_MASK)
+    depths = np.empty(key.size, np.uint8)
+    np.right_shift(key, _U64(1), out=depths, casting="unsafe")
+    depths &= np.uint8(31)
+    bits = np.empty(key.size, np.uint8)
+    np.bitwise_and(key, _U64(1), out=bits, casting="unsafe")
+    return _Leaves(words, depths, np.asarray(value_of_bit, np.float32)[bits])
+
+
+def _decode_bt(buf: np.ndarray, start: int, source, params, max_leaves=None):
+    """Body of a ``.bt`` at ``buf[start:]`` -> (leaves, nodes, end)."""
     total = buf.size
     n_rec = (total - start) // 2
     if n_rec == 0:
@@ -289,34 +225,46 @@ def _decode_bt(buf: np.ndarray, start: int, source, params):
     end = start + 2 * length
     if length == 1 and words[0] == 0:
         # childless root: an emptied tree (see module docstring)
-        return *_empty_leaves(), 1, end
+        return _empty_leaves(), 1, end
     empty_rec = np.flatnonzero(words == 0)
     if empty_rec.size:
         raise MapFormatError(source, start + 2 * int(empty_rec[0]),
                              "an inner node has no children (corrupt child flags)")
+    either = _BT_LEAF[words]
+    n_leaves = int(_preorder.POPCOUNT8[either].sum(dtype=np.int64))
+    _check_size(source, length, n_leaves, max_leaves)
     try:
         lay = _preorder.stream_layout(inner, h, max_depth=15)
     except _preorder.StreamError as err:
         raise _stream_error(source, start, 2, total, err) from None
-    # leaf children, generated depth by depth: one sorted run per depth, merged by argsort
-    occ = _BT_OCC[words][lay.order]
-    either = occ | _BT_FREE[words][lay.order]
-    row, slot = np.nonzero(np.unpackbits(either[:, None], axis=1, bitorder="little"))
-    rec = lay.order[row]
-    parent_depth = lay.depth[rec]
-    slot64 = slot.astype(np.uint64)
-    codes = lay.code[rec] | (slot64 << _CHILD_SHIFT[parent_depth])
-    depths = parent_depth + np.uint8(1)
+    del h, inner
+    occ = _BT_OCC[words]
+    # leaf children, one (parent depth, slot) at a time, as sort keys code << 8 | depth << 1 | occ
+    key = np.empty(n_leaves, np.uint64)
+    pos = 0
+    for d in range(16):
+        recs = lay.order[lay.bounds[d]: lay.bounds[d + 1]]
+        if recs.size == 0:
+            continue
+        rec_either, rec_occ, rec_code = either[recs], occ[recs], lay.code[recs]
+        for j in range(8):
+            sel = np.flatnonzero((rec_either >> j) & 1)
+            k = sel.size
+            if not k:
+                continue
+            part = key[pos: pos + k]
+            np.bitwise_or(rec_code[sel], _U64(j) << _CHILD_SHIFT[d], out=part)
+            part <<= _U64(8)
+            part |= _U64((d + 1) << 1) | ((rec_occ[sel] >> j) & 1).astype(np.uint64)
+            pos += k
+    del lay, occ, either
     p = _params_f32(params)
-    is_occ = ((occ[row] >> slot.astype(np.uint8)) & 1).astype(bool)
-    log_odds = np.where(is_occ, p["clamp_max_log_odds"], p["clamp_min_log_odds"])
-    order = np.argsort(codes, kind="stable")
-    nodes = length + int(rec.size)
-    return codes[order], depths[order], log_odds[order].astype(np.float32), nodes, end
+    leaves = _sorted_leaves(key, [p["clamp_min_log_odds"], p["clamp_max_log_odds"]])
+    return leaves, length + n_leaves, end
 
 
-def _decode_ot(buf: np.ndarray, start: int, source, tree_id: str):
-    """Body of a ``.ot`` at ``buf[start:]`` -> (codes, depths, log_odds, nodes, end)."""
+def _decode_ot(buf: np.ndarray, start: int, source, tree_id: str, max_leaves=None):
+    """Body of a ``.ot`` at ``buf[start:]`` -> (leaves, nodes, end)."""
     if tree_id not in _OT_PAYLOAD:
         raise MapFormatError(source, None, f"unsupported octree id {tree_id!r}: can read "
                              f"{', '.join(sorted(_OT_PAYLOAD))} (.ot) and any occupancy "
@@ -334,14 +282,10 @@ def _decode_ot(buf: np.ndarray, start: int, source, tree_id: str):
         raise _stream_error(source, start, rec_size, total, err) from None
     end = start + rec_size * length
     if length == 1:  # childless root: an emptied tree (see module docstring)
-        return *_empty_leaves(), 1, end
+        return _empty_leaves(), 1, end
     mask = mask[:length]
-    try:
-        lay = _preorder.stream_layout(mask, h, max_depth=16)
-    except _preorder.StreamError as err:
-        raise _stream_error(source, start, rec_size, total, err) from None
-    depth, code = lay.depth, lay.code
     leaf = np.flatnonzero(mask == 0)
+    _check_size(source, length, int(leaf.size), max_leaves)
     # float32 payloads sit at a 5- (or 8-) byte stride: a strided (unaligned) view, no copy
     all_log_odds = np.ndarray((length,), dtype="<f4", buffer=buf, offset=start,
                               strides=(rec_size,))
@@ -350,34 +294,46 @@ def _decode_ot(buf: np.ndarray, start: int, source, tree_id: str):
     if bad.size:
         raise MapFormatError(source, start + rec_size * int(leaf[bad[0]]),
                              "a leaf's log-odds is NaN")
-    return code[leaf], depth[leaf], log_odds.astype(np.float32), length, end
+    try:
+        lay = _preorder.stream_layout(mask, h, max_depth=16)
+    except _preorder.StreamError as err:
+        raise _stream_error(source, start, rec_size, total, err) from None
+    del h
+    # pre-order visits leaves in code order: no sort needed
+    code = lay.code[leaf]
+    depth = lay.depth[leaf]
+    del lay
+    words = morton.split_codes(code)
+    return _Leaves(words, depth, log_odds.astype(np.float32)), length, end
 
 
-def _empty_leaves():
-    return np.zeros(0, np.uint64), np.zeros(0, np.uint8), np.zeros(0, np.float32)
+def _empty_leaves() -> _Leaves:
+    return _Leaves(np.zeros((0, 2), np.int32), np.zeros(0, np.uint8), np.zeros(0, np.float32))
 
 
-def _decode_body(buf, start, source, binary, tree_id, params, strict, claimed_size=None):
+def _decode_body(buf, start, source, binary, tree_id, params, strict, claimed_size=None,
+                 max_leaves=None) -> _Leaves:
     if binary:
-        codes, depths, log_odds, nodes, end = _decode_bt(buf, start, source, params)
+        leaves, nodes, end = _decode_bt(buf, start, source, params, max_leaves)
     else:
-        codes, depths, log_odds, nodes, end = _decode_ot(buf, start, source, tree_id)
+        leaves, nodes, end = _decode_ot(buf, start, source, tree_id, max_leaves)
     if strict and end != buf.size:
         raise MapFormatError(source, end, f"{buf.size - end} unexpected bytes after the tree "
                              "(OctoMap ignores them; strict=False / --lenient does too)")
     if strict and claimed_size is not None and claimed_size != nodes:
         raise MapFormatError(source, None, f"size mismatch: the header claims {claimed_size} "
                              f"nodes, the data holds {nodes}")
-    return codes, depths, log_odds
+    return leaves
 
 
-def _decode_image(buf: np.ndarray, source, params, strict, allow_legacy: bool):
-    raw = buf[:_HEADER_WINDOW].tobytes()
+def _decode_image(buf: np.ndarray, source, params, strict, allow_legacy: bool,
+                  max_leaves=None):
+    raw = buf[:HEADER_WINDOW].tobytes()
     if allow_legacy and not raw.startswith(BINARY_FILE_HEADER) and \
             not raw.startswith(FULL_FILE_HEADER):
-        header = _parse_legacy(raw, source)
+        header = parse_legacy(raw, source)
     else:
-        header = _parse_header(raw, source)
+        header = parse_header_prefix(lambda n: buf[:n].tobytes(), buf.size, source)
     if header.size == 0:
         # OctoMap reads no body for size 0 (an empty tree is written as a bare header).
         if strict and header.data_offset != buf.size:
@@ -386,13 +342,14 @@ def _decode_image(buf: np.ndarray, source, params, strict, allow_legacy: bool):
                                  "empty tree (header size 0)")
         return header, _empty_leaves()
     leaves = _decode_body(buf, header.data_offset, source, header.binary, header.tree_id,
-                          params, strict, claimed_size=header.size)
+                          params, strict, claimed_size=header.size, max_leaves=max_leaves)
     return header, leaves
 
 
-def _to_map(leaves, resolution, params):
-    codes, depths, log_odds = leaves
-    return _map.from_leaves(codes, depths, log_odds, resolution, params=params, check=False)
+def _to_map(leaves: _Leaves, resolution, params):
+    """The map of sorted leaves (``from_words``: no re-sort, no uint64 copy)."""
+    return _map.from_words(leaves.words, leaves.depths, leaves.log_odds, resolution,
+                           params=params)
 
 
 # ----------------------------------------------------------------------------- encoding
@@ -475,18 +432,27 @@ def _format_of(path: Path) -> bool:
 
 
 def read_header(path) -> Header:
-    """The header of an OctoMap file (no body is read beyond the first 64 KiB)."""
+    """The header of an OctoMap file (only the header's bytes are read: 64 KiB, or more for a
+    header with long comments)."""
     path = Path(path)
     is_bt = _format_of(path)
+    check_input_file(path)
     with open(path, "rb") as f:
-        raw = f.read(_HEADER_WINDOW)
-    if is_bt and not raw.startswith(BINARY_FILE_HEADER) and not raw.startswith(FULL_FILE_HEADER):
-        return _parse_legacy(raw, path)
-    return _parse_header(raw, path)
+        total = os.fstat(f.fileno()).st_size
+        raw = f.read(HEADER_WINDOW)
+        if is_bt and not raw.startswith(BINARY_FILE_HEADER) and \
+                not raw.startswith(FULL_FILE_HEADER):
+            return parse_legacy(raw, path)
+
+        def prefix(n: int) -> bytes:
+            f.seek(0)
+            return f.read(n)
+
+        return parse_header_prefix(prefix, total, path)
 
 
-def load(path, *, params: _map.OccupancyParams | None = None,
-         strict: bool = True) -> _map.OccupancyMap:
+def load(path, *, params: _map.OccupancyParams | None = None, strict: bool = True,
+         max_leaves: int | None = None) -> _map.OccupancyMap:
     """Read an OctoMap ``.bt`` or ``.ot`` file into an ``OccupancyMap``.
 
     The extension must be ``.bt`` or ``.ot``; the format is taken from the file's first line
@@ -499,11 +465,19 @@ def load(path, *, params: _map.OccupancyParams | None = None,
 
     Raises ``MapFormatError`` (naming the path and byte offset) for bad data; see the
     module docstring. ``strict=False`` tolerates trailing bytes and a wrong header size.
+
+    Size: a tree of more than ``max_leaves`` leaves (default ``DEFAULT_MAX_LEAVES``, 10^8)
+    raises ``MapTooLargeError``, and one whose reading would take more host memory than the
+    budget (``budget.check_allocation``; about 29 B per leaf plus the map's padded 16 B
+    per leaf and 96 B per node) raises ``MemoryBudgetError``, both before allocating.
+    ``FileNotFoundError`` / ``IsADirectoryError`` / ``PermissionError`` name the path.
     """
     path = Path(path)
     is_bt = _format_of(path)
+    check_input_file(path)
     buf = np.fromfile(path, dtype=np.uint8)
-    header, leaves = _decode_image(buf, path, params, strict, allow_legacy=is_bt)
+    header, leaves = _decode_image(buf, path, params, strict, allow_legacy=is_bt,
+                                   max_leaves=max_leaves)
     return _to_map(leaves, header.resolution, params)
 
 
@@ -537,12 +511,13 @@ def to_bytes(occupancy_map: _map.OccupancyMap, binary: bool = True, *,
     body, nodes = _encode(occupancy_map, bool(binary))
     if not header:
         return body
-    return _header_bytes(bool(binary), "OcTree", nodes, occupancy_map.resolution) + body
+    return header_bytes(bool(binary), "OcTree", nodes, occupancy_map.resolution) + body
 
 
 def from_bytes(data, binary: bool | None = None, resolution: float | None = None,
                id: str = "OcTree", *, params: _map.OccupancyParams | None = None,
-               strict: bool = True, source: str = BYTES_SOURCE) -> _map.OccupancyMap:
+               strict: bool = True, source: str = BYTES_SOURCE,
+               max_leaves: int | None = None) -> _map.OccupancyMap:
     """Read a map from an ``octomap_msgs/Octomap`` payload or a whole file image.
 
     Args:
@@ -556,6 +531,7 @@ def from_bytes(data, binary: bool | None = None, resolution: float | None = None
       params: occupancy parameters (``.bt`` leaf values); OctoMap defaults if None.
       strict: refuse bytes after the tree (and, for an image, a wrong header size).
       source: the name used in error messages.
+      max_leaves: refuse trees of more leaves (``MapTooLargeError``); see ``load``.
 
     An empty payload is an empty map (OctoMap writes no body for an empty tree). For a
     file image, ``binary``/``resolution`` must be None or agree with its header.
@@ -563,7 +539,8 @@ def from_bytes(data, binary: bool | None = None, resolution: float | None = None
     buf = _as_uint8(data)
     head = buf[: len(BINARY_FILE_HEADER)].tobytes()
     if head.startswith(BINARY_FILE_HEADER) or head.startswith(FULL_FILE_HEADER):
-        header, leaves = _decode_image(buf, source, params, strict, allow_legacy=False)
+        header, leaves = _decode_image(buf, source, params, strict, allow_legacy=False,
+                                       max_leaves=max_leaves)
         if binary is not None and bool(binary) != header.binary:
             raise ValueError(f"binary={binary!r} but the data is a "
                              f"{'binary (.bt)' if header.binary else 'full (.ot)'} file image")
@@ -578,20 +555,25 @@ def from_bytes(data, binary: bool | None = None, resolution: float | None = None
         raise ValueError("resolution must be given for a message payload (data without an "
                          "OctoMap header)")
     res = _check_resolution(resolution)
+    if not MIN_RESOLUTION <= res <= MAX_RESOLUTION:
+        raise ValueError(f"resolution {res!r} is outside the supported {MIN_RESOLUTION:g}.."
+                         f"{MAX_RESOLUTION:g} m")
     if buf.size == 0:
         return _map.empty(res, params=params)
     if id == "1":
         id = "OcTree"
-    leaves = _decode_body(buf, 0, source, bool(binary), str(id), params, strict)
+    leaves = _decode_body(buf, 0, source, bool(binary), str(id), params, strict,
+                          max_leaves=max_leaves)
     return _to_map(leaves, res, params)
 
 
 def from_message(msg, *, params: _map.OccupancyParams | None = None,
-                 strict: bool = True) -> _map.OccupancyMap:
+                 strict: bool = True, max_leaves: int | None = None) -> _map.OccupancyMap:
     """Read an ``octomap_msgs/Octomap`` message (any object with ``binary``, ``id``,
     ``resolution`` and ``data`` attributes, e.g. from rclpy or rospy)."""
     return from_bytes(msg.data, binary=bool(msg.binary), resolution=float(msg.resolution),
-                      id=str(msg.id), params=params, strict=strict, source="<message>")
+                      id=str(msg.id), params=params, strict=strict, source="<message>",
+                      max_leaves=max_leaves)
 
 
 def to_message_fields(occupancy_map: _map.OccupancyMap, binary: bool = True) -> dict:

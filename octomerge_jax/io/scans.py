@@ -26,16 +26,35 @@ from __future__ import annotations
 
 import dataclasses
 import io as _io
+import math
 import struct
 from pathlib import Path
 
 import numpy as np
 
-from .._fileutil import atomic_output
+from .._fileutil import atomic_output, check_input_file
 from .. import se3
+from .octree_format import MAX_RESOLUTION
 
 __all__ = ["Scan", "ScanEdge", "read_scan_graph", "write_scan_graph", "read_scan_log",
            "write_scan_log", "read_point_cloud", "read_scans"]
+
+
+#: Largest coordinate [m] a point or pose may have: half the extent of an OctoMap tree at
+#: the coarsest supported resolution. Anything farther is a corrupt value, not a measurement.
+MAX_COORDINATE = 32768 * MAX_RESOLUTION
+
+
+def _check_coordinates(values, where: str, what: str) -> None:
+    """``ValueError`` naming ``where`` unless every value is finite and within
+    ``MAX_COORDINATE``."""
+    v = np.asarray(values, np.float64).reshape(-1)
+    bad = np.flatnonzero(~(np.abs(v) <= MAX_COORDINATE))
+    if bad.size:
+        first = float(v[bad[0]])
+        problem = "not finite" if not math.isfinite(first) else "out of range"
+        raise ValueError(f"{where}: {what} {first!r} is {problem} "
+                         f"(|value| <= {MAX_COORDINATE:g} m)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,12 +121,16 @@ class _Reader:
 
     def pose(self, what: str) -> np.ndarray:
         self.tag(3, f"{what} translation")
+        at = self.pos
         t = self.f64(3, f"{what} translation")
+        _check_coordinates(t, f"{self.path}: byte offset {at}", f"{what} translation")
         self.tag(4, f"{what} rotation")
         at = self.pos
         q = self.f64(4, f"{what} rotation")
-        if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+        scale = float(np.max(np.abs(q))) if np.all(np.isfinite(q)) else 0.0
+        if not 1e-150 < scale:  # non-finite, zero or denormal: no rotation
             raise ValueError(f"{self.path}: invalid quaternion {q.tolist()} at byte offset {at}")
+        q = q / scale  # largest component 1: its norm neither overflows nor underflows
         T = np.eye(4)
         T[:3, :3] = se3.from_quaternion(q, xp=np)[:3, :3]
         T[:3, 3] = t
@@ -141,6 +164,10 @@ def read_scan_graph(path, *, with_edges: bool = False):
                              f"{r.pos + 28 * int(bad[0])}: expected element count 3, found "
                              f"{int(rec['n'][bad[0]])}")
         pts = rec["xyz"].astype(np.float64)
+        far = np.flatnonzero(np.any(np.abs(pts) > MAX_COORDINATE, axis=1))
+        if far.size:  # NaN points are OctoMap's invalid returns: kept, dropped on insertion
+            _check_coordinates(pts[far[0]], f"{path}: byte offset {r.pos + 28 * int(far[0])}",
+                               f"point {int(far[0])} of node {i}: coordinate")
         r.pos += 28 * n_pts
         pose = r.pose(f"node {i} pose")
         node_id = r.u32(f"node {i} id")
@@ -228,6 +255,9 @@ def read_scan_log(path) -> list[Scan]:
                 vals = [float(v) for v in tok[1:]]
             except ValueError:
                 raise ValueError(f"{path}:{lineno}: non-numeric NODE pose {line!r}") from None
+            _check_coordinates(vals[:3], f"{path}:{lineno}", "NODE position")
+            if not all(np.isfinite(vals[3:])):
+                raise ValueError(f"{path}:{lineno}: non-finite NODE angles {line!r}")
             if pose is not None:
                 scans.append(Scan(np.asarray(pts, np.float64).reshape(-1, 3), pose, len(scans)))
             pose, pts, bare = se3.from_xyz_rpy(*vals, xp=np), [], False
@@ -240,6 +270,7 @@ def read_scan_log(path) -> list[Scan]:
             raise ValueError(f"{path}:{lineno}: non-numeric point {line!r}") from None
         if not all(np.isfinite(p)):
             raise ValueError(f"{path}:{lineno}: non-finite point {line!r}")
+        _check_coordinates(p, f"{path}:{lineno}", "point coordinate")
         if pose is None:
             pose, bare = np.eye(4), True
         pts.append(p)
@@ -267,17 +298,35 @@ def write_scan_log(path, scans) -> None:
 # --------------------------------------------------------------------------- point clouds
 
 
+#: PCD ``TYPE`` letters and the ``SIZE`` values each allows (PCL's ``pcl::PCLPointField``).
+_PCD_TYPES = {"F": (4, 8), "I": (1, 2, 4, 8), "U": (1, 2, 4, 8)}
+
+
+def _pcd_ints(vals, where: str, key: str, minimum: int) -> list[int]:
+    try:
+        out = [int(v) for v in vals]
+    except ValueError:
+        raise ValueError(f"{where}: PCD {key} {' '.join(vals)!r} is not a list of integers") from None
+    if not out or min(out) < minimum:
+        raise ValueError(f"{where}: PCD {key} needs integers >= {minimum}, got {' '.join(vals)!r}")
+    return out
+
+
 def _read_pcd(path: Path) -> np.ndarray:
+    """PCD v0.7 (``ascii`` / ``binary``) -> ``(n, 3)`` float64; NaN points (PCL's invalid
+    returns) are dropped. Errors name the file and the header line or byte offset."""
     data = path.read_bytes()
     fields = sizes = types = counts = None
     points = None
     pos = 0
     lineno = 0
+    kind = ""
     while True:
         end = data.find(b"\n", pos)
         if end < 0:
             raise ValueError(f"{path}: PCD header has no DATA line")
         lineno += 1
+        where = f"{path}:{lineno}"
         line = data[pos:end].decode("ascii", "replace").strip()
         pos = end + 1
         if not line or line.startswith("#"):
@@ -287,24 +336,36 @@ def _read_pcd(path: Path) -> np.ndarray:
         if key == "FIELDS":
             fields = vals
         elif key == "SIZE":
-            sizes = [int(v) for v in vals]
+            sizes = _pcd_ints(vals, where, key, 1)
         elif key == "TYPE":
-            types = vals
+            types = [v.upper() for v in vals]
+            unknown = [t for t in types if t not in _PCD_TYPES]
+            if unknown or not types:
+                raise ValueError(f"{where}: PCD TYPE {' '.join(vals)!r}: each must be F, I or U")
         elif key == "COUNT":
-            counts = [int(v) for v in vals]
+            counts = _pcd_ints(vals, where, key, 1)
         elif key == "POINTS":
-            points = int(vals[0])
+            if len(vals) != 1:
+                raise ValueError(f"{where}: PCD POINTS needs one value, got {' '.join(vals)!r}")
+            points = _pcd_ints(vals, where, key, 0)[0]
         elif key == "DATA":
             kind = vals[0].lower() if vals else ""
             break
     if fields is None or points is None:
-        raise ValueError(f"{path}: PCD header lacks FIELDS or POINTS (line {lineno})")
+        raise ValueError(f"{path}:{lineno}: PCD header lacks FIELDS or POINTS")
     for axis in "xyz":
         if axis not in fields:
             raise ValueError(f"{path}: PCD has no '{axis}' field (fields {fields})")
     counts = counts or [1] * len(fields)
+    for key, vals in (("COUNT", counts), ("SIZE", sizes), ("TYPE", types)):
+        if vals is not None and len(vals) != len(fields):
+            raise ValueError(f"{path}: PCD {key} has {len(vals)} entries for {len(fields)} FIELDS")
     if kind == "ascii":
-        rows = data[pos:].decode("ascii").split("\n")
+        try:
+            rows = data[pos:].decode("ascii").split("\n")
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{path}: PCD ascii data is not ASCII (byte offset "
+                             f"{pos + err.start})") from None
         vals = []
         for i, row in enumerate(rows):
             if not row.strip():
@@ -312,23 +373,38 @@ def _read_pcd(path: Path) -> np.ndarray:
             tok = row.split()
             if len(tok) != sum(counts):
                 raise ValueError(f"{path}:{lineno + 1 + i}: expected {sum(counts)} values, got {len(tok)}")
-            vals.append([float(t) for t in tok])
+            try:
+                vals.append([float(t) for t in tok])
+            except ValueError:
+                raise ValueError(f"{path}:{lineno + 1 + i}: non-numeric value in {row.strip()[:80]!r}") from None
+        if len(vals) != points:
+            raise ValueError(f"{path}: PCD POINTS says {points} but the data has {len(vals)} rows")
         arr = np.asarray(vals, np.float64).reshape(-1, sum(counts))
         col = np.cumsum([0] + counts)
         xyz = np.stack([arr[:, col[fields.index(a)]] for a in "xyz"], axis=1)
     elif kind == "binary":
         if sizes is None or types is None:
             raise ValueError(f"{path}: binary PCD needs SIZE and TYPE")
-        dt = np.dtype([(f if f != "_" else f"_{i}", f"<{t.lower()}{s}", (c,)) for i, (f, s, t, c)
-                       in enumerate(zip(fields, sizes, types, counts))])
+        for f, t, size in zip(fields, types, sizes):
+            if size not in _PCD_TYPES[t]:
+                raise ValueError(f"{path}: PCD field {f!r} has TYPE {t} with SIZE {size} "
+                                 f"(allowed {_PCD_TYPES[t]})")
+        dt = np.dtype([(f"_{i}", f"<{t.lower()}{s}", (c,)) for i, (t, s, c)
+                       in enumerate(zip(types, sizes, counts))])
         if len(data) - pos < dt.itemsize * points:
             raise ValueError(f"{path}: binary PCD truncated at byte offset {len(data)}: "
                              f"{points} points need {dt.itemsize * points} bytes after offset {pos}")
         rec = np.frombuffer(data, dt, count=points, offset=pos)
-        xyz = np.stack([rec[a][:, 0].astype(np.float64) for a in "xyz"], axis=1)
+        with np.errstate(invalid="ignore"):  # signalling NaNs (invalid points) widen quietly
+            xyz = np.stack([rec[f"_{fields.index(a)}"][:, 0].astype(np.float64) for a in "xyz"],
+                           axis=1)
     else:
         raise ValueError(f"{path}: unsupported PCD DATA kind {kind!r} (ascii and binary are supported)")
-    return xyz[np.all(np.isfinite(xyz), axis=1)]
+    xyz = xyz[~np.any(np.isnan(xyz), axis=1)]
+    far = np.flatnonzero(np.any(~(np.abs(xyz) <= MAX_COORDINATE), axis=1))
+    if far.size:
+        _check_coordinates(xyz[far[0]], f"{path}: point {int(far[0])}", "coordinate")
+    return xyz
 
 
 def read_point_cloud(path) -> np.ndarray:
@@ -358,8 +434,7 @@ def read_scans(path) -> list[Scan]:
     """Any supported scan file -> ``list[Scan]``: ``.graph`` (ScanGraph), ``.dat``/``.log``/
     ``.txt`` (plain log), or one point cloud (``.ply``/``.pcd``/``.xyz``) at the identity pose."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such scan file")
+    check_input_file(path)
     suffix = path.suffix.lower()
     if suffix == ".graph":
         return read_scan_graph(path)
