@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .._fileutil import check_not_input
 from ..insert import insert_point_clouds
 from ..io import save
 from ..io.scans import Scan, read_scans
 from ..map import empty
 from ._common import CliError
+from .outputs import MAP_SUFFIXES, check_input, check_output, writing
 
 EPILOG = """examples:
   octomerge build run1.graph robot1.bt --res 0.05
@@ -39,16 +39,15 @@ def register(subparsers) -> None:
     p.add_argument("--origin", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                    help="sensor position for a single point cloud file (default 0 0 0)")
     p.add_argument("--batch", type=int, default=8, help="scans per update batch (default 8)")
-    p.add_argument("--force", action="store_true", help="allow OUT to be the input file")
+    p.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    if args.output.suffix.lower() not in (".bt", ".ot"):
-        raise CliError(f"{args.output}: output must end in .bt or .ot")
     if not args.res > 0:
         raise CliError(f"--res must be positive, got {args.res}")
-    check_not_input(args.output, [args.scans], args.force)
+    check_input(args.scans, "scan")
+    check_output(args.output, inputs=[args.scans], force=args.force, suffixes=MAP_SUFFIXES, side=True)
     scans = read_scans(args.scans)
     if args.origin is not None:
         if len(scans) != 1:
@@ -59,7 +58,8 @@ def run(args) -> int:
     clouds = [s.world_points().astype(np.float32) for s in scans]
     origins = np.array([s.sensor_origin for s in scans]).reshape(-1, 3)
     m = insert_point_clouds(empty(args.res), clouds, origins, args.max_range, batch_size=args.batch)
-    save(m, args.output)
+    with writing(args.output):
+        save(m, args.output)
     n_pts = sum(len(c) for c in clouds)
     print(f"wrote {args.output}: {len(scans)} scans, {n_pts} points, {m.num_leaves} leaves "
           f"at {args.res:g} m")

@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .._fileutil import check_not_input
 from ..io import load, num_nodes, save
-from ._common import CliError
+from .outputs import MAP_SUFFIXES, check_input, check_output, writing
 
 EPILOG = """examples:
   octomerge convert robot1.ot robot1.bt     # full log-odds -> maximum likelihood (lossy)
@@ -15,7 +14,8 @@ EPILOG = """examples:
   octomerge convert old.bt old.bt --force   # rewrite in place (e.g. a legacy .bt)
 
 .bt stores only free/occupied: converting to .bt applies maximum likelihood and OctoMap's
-prune, exactly as OctoMap's writeBinary does. Output is written atomically.
+prune, exactly as OctoMap's writeBinary does. Output is written atomically; an existing OUT
+is overwritten only with --force.
 """
 
 
@@ -27,20 +27,18 @@ def register(subparsers) -> None:
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("input", type=Path, metavar="IN", help="a .bt or .ot file")
     p.add_argument("output", type=Path, metavar="OUT", help="the .bt or .ot file to write")
-    p.add_argument("--force", action="store_true", help="allow OUT to be IN (overwrite it)")
+    p.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file (IN too)")
     p.add_argument("--lenient", action="store_true",
                    help="accept trailing bytes and a wrong header size in IN")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    if not args.input.is_file():
-        raise CliError(f"{args.input}: no such file")
-    if args.output.suffix.lower() not in (".bt", ".ot"):
-        raise CliError(f"{args.output}: OUT must end in .bt or .ot")
-    check_not_input(args.output, [args.input], force=args.force)
+    check_input(args.input, "map")
+    check_output(args.output, inputs=[args.input], force=args.force, suffixes=MAP_SUFFIXES)
     m = load(args.input, strict=not args.lenient)
-    save(m, args.output)
+    with writing(args.output):
+        save(m, args.output)
     print(f"{args.input} -> {args.output}: {m.num_leaves:,} leaves "
           f"({num_nodes(m):,} nodes) at {m.resolution:g} m, "
           f"{args.output.stat().st_size:,} bytes")

@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .._fileutil import check_not_input
 from ..io import load
-from ..io.export import export_map
+from ..io.export import EXPORT_FORMATS, export_map
 from ._common import CliError
+from .outputs import check_input, check_output, writing
 
 EPILOG = """examples:
   octomerge export merged.bt merged.glb                  # cubes coloured by height
@@ -31,15 +31,17 @@ def register(subparsers) -> None:
     p.add_argument("--which", choices=("occupied", "free", "all"), default="occupied",
                    help="which leaves to export (default: occupied)")
     p.add_argument("--points", action="store_true", help="leaf centres as points (.ply only)")
-    p.add_argument("--force", action="store_true", help="allow OUT to be the input file")
+    p.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    if not args.map.is_file():
-        raise CliError(f"{args.map}: no such file")
-    check_not_input(args.output, [args.map], args.force)
+    check_input(args.map, "map")
+    check_output(args.output, inputs=[args.map], force=args.force, suffixes=EXPORT_FORMATS, side=True)
+    if args.points and args.output.suffix.lower() != ".ply":
+        raise CliError(f"{args.output}: --points needs a .ply output")
     m = load(args.map)
-    export_map(m, args.output, which=args.which, color_by=args.color, points=args.points)
+    with writing(args.output):
+        export_map(m, args.output, which=args.which, color_by=args.color, points=args.points)
     print(f"wrote {args.output} ({m.num_leaves} leaves in map)")
     return 0

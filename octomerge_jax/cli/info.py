@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import load, num_nodes, read_header
-from ._common import CliError
+from .outputs import check_input
 
 EPILOG = """examples:
   octomerge info room.bt
@@ -33,8 +33,7 @@ def register(subparsers) -> None:
 
 def summarize(path: Path, lenient: bool = False) -> dict:
     """The facts ``info`` prints, as a JSON-able dict."""
-    if not path.is_file():
-        raise CliError(f"{path}: no such file")
+    check_input(path, "map")
     header = read_header(path)
     m = load(path, strict=not lenient)
     lv = m.leaves()

@@ -8,11 +8,11 @@ import sys
 import time
 from pathlib import Path
 
-from .._fileutil import check_not_input
 from ..pipeline import COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, REFINE_CHOICES, MergeConfig, load_config
 from ..io import MapFormatError, load, save
 from ..pipeline import MergeError, icp_trace, merge, transform_from_xyz_rpy
 from ._common import CliError
+from .outputs import FIGURE_SUFFIXES, MAP_SUFFIXES, angle_warnings, check_input, check_output, writing
 from .plots import plot_icp_convergence, plot_map, plot_overlap
 
 # exit codes (also in the epilog)
@@ -32,7 +32,9 @@ EPILOG = """examples:
 
 The guess T_1_2 maps map 2's frame into map 1's: x y z in metres, roll pitch yaw in radians
 (R = Rz(yaw) Ry(pitch) Rx(roll), as OctoMap's Pose6D). OUT is .bt (maximum likelihood) or .ot
-(log-odds) and is in map 1's frame. Outputs are written atomically; inputs are never overwritten.
+(log-odds) and is in map 1's frame. Outputs are written atomically and checked before any
+compute; an existing file (an input too, for OUT) is overwritten only with --force. An angle
+beyond 2 pi rad gets a warning (degrees without --degrees?).
 
 exit codes: 0 merged (an unconverged ICP is a warning unless --strict), 1 bad input (missing or
 unreadable file, NaN guess, ...), 2 usage, 3 resolutions differ (see --resample), 4 no overlap
@@ -82,13 +84,15 @@ def register(subparsers) -> None:
     o.add_argument("--figure", type=Path, metavar="PNG", help="overlap clouds before/after ICP (Fig. 7.6)")
     o.add_argument("--map-figure", type=Path, metavar="PNG", help="merged map, occupancy-shaded (Fig. 7.7)")
     o.add_argument("--icp-figure", type=Path, metavar="PNG", help="ICP convergence per iteration")
-    o.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
+    o.add_argument("--force", action="store_true",
+                   help="allow outputs to overwrite existing files (OUT may replace an input)")
     o.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
     p.set_defaults(func=run)
 
 
-def guess_from_args(args, name: str = "initial guess"):
-    """``(x, y, z, roll, pitch, yaw)`` [m, rad] from positional numbers or --xyz/--rpy."""
+def guess_from_args(args, name: str = "initial guess", rpy_flag: str = "--rpy"):
+    """``(x, y, z, roll, pitch, yaw)`` [m, rad] from positional numbers or --xyz/--rpy; warns
+    (stderr) about an angle beyond a full turn (``outputs.angle_warnings``)."""
     pose = list(args.pose or [])
     if pose and (args.xyz or args.rpy):
         raise CliError("give the guess either as 6 positional numbers or with --xyz/--rpy, not both", 2)
@@ -100,6 +104,8 @@ def guess_from_args(args, name: str = "initial guess"):
     for label, v in zip(("x", "y", "z", "roll", "pitch", "yaw"), vals):
         if not math.isfinite(v):
             raise CliError(f"{name}: {label} = {v} is not a finite number", EXIT_INPUT)
+    for w in angle_warnings(("roll", "pitch", "yaw"), rpy, args.degrees, rpy_flag if not pose else name + ":"):
+        print(f"octomerge: warning: {w}", file=sys.stderr)
     if args.degrees:
         rpy = [math.radians(v) for v in rpy]
     return (*xyz, *rpy)
@@ -120,29 +126,29 @@ def config_from_args(args):
     return cfg.replace(registration=reg, transform=tr, fuse=fu)
 
 
-def _check_output(out: Path, inputs, force: bool, what: str = "OUT"):
-    if out.suffix.lower() not in (".bt", ".ot"):
-        raise CliError(f"{out}: {what} must end in .bt or .ot")
-    check_not_input(out, inputs, force=False)  # never overwrite an input, even with --force
-    if out.exists() and not force:
-        raise CliError(f"{out} exists; pass --force to overwrite it")
-    if str(out.parent) and not out.parent.exists():
-        raise CliError(f"{out}: folder {out.parent} does not exist")
+def check_outputs(args) -> None:
+    """Every output of ``merge`` checked before any compute (``cli/outputs.py``)."""
+    inputs = [args.in1, args.in2]
+    check_output(args.out, inputs=inputs, force=args.force, suffixes=MAP_SUFFIXES)
+    done = [args.out]
+    for flag, path, suffixes in (("--report", args.report, None), ("--figure", args.figure, FIGURE_SUFFIXES),
+                                 ("--map-figure", args.map_figure, FIGURE_SUFFIXES),
+                                 ("--icp-figure", args.icp_figure, FIGURE_SUFFIXES)):
+        if path is not None:
+            check_output(path, inputs=inputs, force=args.force, suffixes=suffixes, what=flag, side=True,
+                         others=done)
+            done.append(path)
 
 
 def run(args) -> int:
     for p in (args.in1, args.in2):
-        if not p.is_file():
-            raise CliError(f"{p}: no such file")
-    _check_output(args.out, [args.in1, args.in2], args.force)
-    for extra in (args.report, args.figure, args.map_figure, args.icp_figure):
-        if extra is not None:
-            _check_output_side(extra, [args.in1, args.in2, args.out])
+        check_input(p, "map")
+    check_outputs(args)
     guess = guess_from_args(args)
     truth = None
     if args.true_xyz or args.true_rpy:
         ns = argparse.Namespace(pose=[], xyz=args.true_xyz, rpy=args.true_rpy, degrees=args.degrees)
-        truth = transform_from_xyz_rpy(*guess_from_args(ns, "ground truth"))
+        truth = transform_from_xyz_rpy(*guess_from_args(ns, "ground truth", "--true-rpy"))
     try:
         cfg = config_from_args(args)
     except (ValueError, FileNotFoundError) as err:
@@ -162,10 +168,12 @@ def run(args) -> int:
     except MergeError as err:
         raise CliError(str(err), _KIND_EXIT.get(err.kind, EXIT_INPUT)) from None
     t1 = time.perf_counter()
-    save(merged, args.out)
+    with writing(args.out):
+        save(merged, args.out)
     report = report.with_timings(load=t_load, save=time.perf_counter() - t1)
     if args.report:
-        report.to_json(args.report)
+        with writing(args.report):
+            report.to_json(args.report)
     write_figures(report, merged, args.figure, args.map_figure, args.icp_figure, cfg, truth)
     say(report.summary())
     say(f"wrote {args.out} ({merged.num_leaves:,} leaves)"
@@ -175,22 +183,18 @@ def run(args) -> int:
     return 0
 
 
-def _check_output_side(path: Path, inputs):
-    check_not_input(path, inputs, force=False)
-    if str(path.parent) and not path.parent.exists():
-        raise CliError(f"{path}: folder {path.parent} does not exist")
-
-
 def write_figures(report, merged, figure, map_figure, icp_figure, cfg, truth=None):
     """Figures for a finished merge (each optional)."""
     if figure is not None:
         eps = None
         if report.epsilon_r is not None:
             eps = ((report.epsilon_r_init, report.epsilon_t_init), (report.epsilon_r, report.epsilon_t))
-        plot_overlap(report.points_1, report.points_2, report.T_1_2_init, report.T_1_2, figure,
-                     epsilons=eps)
+        with writing(figure):
+            plot_overlap(report.points_1, report.points_2, report.T_1_2_init, report.T_1_2, figure,
+                         epsilons=eps)
     if map_figure is not None:
-        plot_map(merged, map_figure, title="merged map (map 1 frame)")
+        with writing(map_figure):
+            plot_map(merged, map_figure, title="merged map (map 1 frame)")
     if icp_figure is not None:
         if report.icp is None:
             print("octomerge merge: warning: --icp-figure needs ICP (refine is none); skipped",
@@ -201,4 +205,5 @@ def write_figures(report, merged, figure, map_figure, icp_figure, cfg, truth=Non
                 start = report.icp_result.hypotheses[int(report.icp_result.best_index)]
             tr = icp_trace(report.points_1, report.points_2, start, report.resolution, cfg,
                            T_1_2_true=truth)
-            plot_icp_convergence(tr, icp_figure)
+            with writing(icp_figure):
+                plot_icp_convergence(tr, icp_figure)
