@@ -152,7 +152,7 @@ def test_batch_on_a_dask_scheduler_equals_serial(job, serial):
     out = job / "scheduler"
     # the worker is a thread of this process; tcp, so the command (another process) reaches it
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
-                                  host="127.0.0.1", dashboard_address=None) as cluster:
+                                  host="127.0.0.1", dashboard_address="127.0.0.1:0") as cluster:
         assert cluster.scheduler_address.startswith("tcp://")
         r = octomerge("batch", job / "good.csv", "--out-dir", out, "--refine", "none", "--no-progress",
                       "--scheduler", cluster.scheduler_address)

@@ -29,8 +29,9 @@ def map_on_dask(func: Callable, items: Sequence, *args, scheduler=None, workers:
 
     ``scheduler``: a scheduler address (``tcp://host:8786``) or a ``distributed.Client`` (left
     open); else a local cluster of ``workers`` single-thread worker processes is started on
-    free ports, without a dashboard (its workers keep XLA:CPU scratch memory as this process
-    does: ``hostmem.child_env``) and closed when the iteration ends.
+    free ports (its HTTP server too: no fixed 8787, only on 127.0.0.1; its workers keep XLA:CPU
+    scratch memory as this process does: ``hostmem.child_env``) and closed when the iteration
+    ends.
 
     ``timeout_s`` [s]: how long to wait for the scheduler to answer, and, once the cluster
     has no worker left, for one to come back: then every unfinished item is yielded with a
@@ -50,7 +51,7 @@ def map_on_dask(func: Callable, items: Sequence, *args, scheduler=None, workers:
             client, own_client = Client(scheduler, timeout=timeout_s), True
         else:
             own_cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                       scheduler_port=0, dashboard_address=None, env=child_env())
+                                       scheduler_port=0, dashboard_address="127.0.0.1:0", env=child_env())
             client, own_client = Client(own_cluster, timeout=timeout_s), True
     except (OSError, TimeoutError) as err:
         if own_cluster is not None:
