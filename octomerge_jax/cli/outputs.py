@@ -86,7 +86,8 @@ def check_output(path, *, inputs: Iterable = (), force: bool = False, suffixes: 
     """
     path = Path(path)
     if suffixes is not None and path.suffix.lower() not in suffixes:
-        raise CliError(f"{path}: {what} must end in {', '.join(suffixes)}")
+        names = ", ".join(suffixes[:-1]) + " or " + suffixes[-1] if len(suffixes) > 1 else suffixes[0]
+        raise CliError(f"{path}: {what} must end in {names}")
     if path.is_dir():
         raise CliError(f"{path}: {what} is a directory")
     for other in others:
