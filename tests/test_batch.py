@@ -10,6 +10,7 @@ import math
 import os
 import socket
 
+import jax
 import numpy as np
 import pytest
 
@@ -49,6 +50,9 @@ def test_merge_batch_matches_merge_and_isolates_bad_pairs():
         assert abs(res[0].merged.num_leaves - single.num_leaves) <= 0.01 * single.num_leaves
 
 
+GUESS = (T_TRUE[0, 3] + 0.1, T_TRUE[1, 3] - 0.05, 0, 0, 0, math.pi / 4 + 0.1)
+
+
 def _write_manifest(tmp_path, rows):
     path = tmp_path / "pairs.csv"
     with open(path, "w", newline="") as f:
@@ -66,7 +70,7 @@ def manifest(tmp_path_factory):
     (d / "maps").mkdir()
     save(m1, d / "maps" / "a.ot")
     save(m2, d / "maps" / "b.ot")
-    g = [T_TRUE[0, 3] + 0.1, T_TRUE[1, 3] - 0.05, 0, 0, 0, math.pi / 4 + 0.1]
+    g = list(GUESS)
     t = [T_TRUE[0, 3], T_TRUE[1, 3], 0, 0, 0, math.pi / 4]
     rows = [["maps/a.ot", "maps/b.ot", "ab.bt", *g, *t],
             ["maps/a.ot", "maps/missing.ot", "bad.bt", *g, "", "", "", "", "", ""],
@@ -189,18 +193,24 @@ def _hold_port(port):
 
 def _batch(tmp_path, rows, *args):
     path = tmp_path / "pairs.csv"
-    path.write_text("map1,map2,output,x,y,z,roll,pitch,yaw\n" + "".join(f"{r},0,0,0,0,0,0\n" for r in rows))
-    return main(["batch", str(path), "--out-dir", str(tmp_path / "out"), "--refine", "none", "--no-progress", *args])
+    path.write_text("map1,map2,output,x,y,z,roll,pitch,yaw\n"
+                    + "".join(r + ("" if r.count(",") > 2 else ",0,0,0,0,0,0") + "\n" for r in rows))
+    # JAX's default promotion, as the command has (and as `local` and the Dask worker threads,
+    # outside conftest's strict context): their compiled kernels are reused, not compiled again
+    with jax.numpy_dtype_promotion("standard"):
+        return main(["batch", str(path), "--out-dir", str(tmp_path / "out"), "--no-progress", *args])
 
 
-def test_batch_command_reports_resume_and_exit_codes(manifest, tmp_path, capsys):
+def test_batch_command_reports_resume_and_exit_codes(manifest, local, tmp_path, capsys):
     d, _ = manifest
     a, b = d / "maps" / "a.ot", d / "maps" / "b.ot"
     out = tmp_path / "out"
-    pairs = [f"{a},{b},x.bt", f"{a},{b},x.ot", f"{a},{tmp_path / 'missing.ot'},m.bt"]
+    g = ",".join(map(str, GUESS))  # the pair `local` merged: its compiled kernels are reused
+    pairs = [f"{a},{b},x.bt,{g}", f"{a},{b},x.ot,{g}", f"{a},{tmp_path / 'missing.ot'},m.bt"]
     assert _batch(tmp_path, pairs) == 6  # a failing pair: exit 6, the others done
     assert "3 pairs: 1 error, 2 ok" in capsys.readouterr().out
     assert (out / "x.bt.json").is_file() and (out / "x.ot.json").is_file()  # one report per output
+    assert (out / "x.bt").read_bytes() == (d / "out_local" / "ab.bt").read_bytes()
     first = _summary(out)
     # a run killed between a map and its report: the pair is not finished, resume redoes it
     (out / "x.ot.json").unlink()
@@ -264,3 +274,11 @@ def test_unreachable_scheduler_is_one_line_error(manifest, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 1 and len(err) == 1, err
     assert err[0].startswith(f"octomerge batch: error: cannot reach the Dask scheduler tcp://127.0.0.1:{port}")
+
+
+def test_batch_workers_beyond_the_cpus_are_capped_with_a_warning(tmp_path, capsys):
+    many = str((os.cpu_count() or 1) + 1)
+    assert _batch(tmp_path, ["a.ot,b.ot,o.txt"], "--workers", many) == 6  # the one row is bad: no cluster
+    err = capsys.readouterr().err
+    assert f"warning: --workers {many} is more than this machine's" in err
+    assert _summary(tmp_path / "out")[0]["kind"] == "manifest"

@@ -253,8 +253,7 @@ def run_manifest(manifest, out_dir, *, config: MergeConfig | None = None, worker
                 done[row.index] = _row_result(row, "error", "manifest", row.error)
             elif resume and _finished(row, write_reports):
                 before = earlier.get(row.output, {})
-                done[row.index] = {**before, **_row_result(row, "skipped", message="output exists (resume)",
-                                                            seconds=float(before.get("seconds") or 0)),
+                done[row.index] = {**_row_result(row, "skipped", message="output exists (resume)"),
                                    **{k: before[k] for k in _KEPT if before.get(k)}}
                 skipped += 1
             else:
@@ -291,7 +290,7 @@ def run_manifest(manifest, out_dir, *, config: MergeConfig | None = None, worker
 
 
 # figures of an earlier run kept in the row of a pair skipped on resume
-_KEPT = ("refine", "icp_status", "icp_iterations", "icp_rmse", "icp_fitness", "leaves_merged", "epsilon_r_init",
+_KEPT = ("seconds", "refine", "icp_status", "icp_iterations", "icp_rmse", "icp_fitness", "leaves_merged", "epsilon_r_init",
          "epsilon_t_init", "epsilon_r", "epsilon_t", "displacement_init", "displacement", "host")
 
 
