@@ -89,14 +89,19 @@ def test_merge_bad_inputs_exit_codes(files, capsys, tmp_path):
     assert not (tmp_path / "o.bt").exists()
 
 
-def test_merge_never_overwrites_inputs(files, capsys):
+def test_merge_overwrites_an_input_only_with_force(files, capsys, tmp_path):
     a, b = files / "a.ot", files / "b.ot"
     before = a.read_bytes()
-    for force in ([], ["--force"]):
-        assert main(["merge", str(a), str(b), str(a), *_guess_args(), *force]) == 1
-        assert "is also an input" in _err(capsys)
-    assert main(["merge", str(a), str(b), str(files / "x.bt"), "--report", str(b)]) == 1
+    assert main(["merge", str(a), str(b), str(a), *_guess_args()]) == 1
+    assert "is also an input; pass --force to overwrite it" in _err(capsys)
+    assert main(["merge", str(a), str(b), str(files / "x.bt"), "--report", str(b), "--force"]) == 1
+    assert "--report is also an input; refusing" in _err(capsys)  # a side output never replaces an input
     assert a.read_bytes() == before
+    # --force does what it says: OUT replaces map 1 (read completely first), e.g. to accumulate
+    acc = tmp_path / "acc.ot"
+    acc.write_bytes(before)
+    assert main(["merge", str(acc), str(b), str(acc), *_guess_args(), "--force", "-q"]) == 0
+    assert acc.read_bytes() != before and load(acc).num_leaves > load(a).num_leaves // 2
     # an existing (non-input) output needs --force
     (files / "exists.bt").write_bytes(b"old")
     assert main(["merge", str(a), str(b), str(files / "exists.bt"), *_guess_args()]) == 1

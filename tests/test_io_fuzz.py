@@ -147,9 +147,6 @@ def test_fuzz_campaign_slice(targets, cli, cases):
         assert sum(res["counts"][t].values()) == cases
 
 
-@pytest.mark.xfail(strict=True, reason="manifest rows: too few columns (AttributeError) and "
-                   "non-finite guesses, fixed in the CLI half of issue 39; remove this mark "
-                   "once merged")
 def test_fuzz_campaign_slice_manifests():
     res = fuzz_inputs.campaign(seed=7, cases=40, targets=("manifest",))
     assert res["failures"] == []

@@ -80,8 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     except CliError as err:
         print(f"octomerge {args.command}: error: {err}", file=sys.stderr)
         return err.exit_code
-    except (ValueError, FileNotFoundError, PermissionError, IsADirectoryError,
-            MemoryBudgetError) as err:
+    except (ValueError, OSError, MemoryBudgetError) as err:  # OSError: a write that failed late
         print(f"octomerge {args.command}: error: {err}", file=sys.stderr)
         return 1
 

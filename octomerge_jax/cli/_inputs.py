@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .._fileutil import check_input_file
 from ..io import MapFormatError, load
 from ..io.bags import BagMap, is_bag, select_map
 from ..map import OccupancyMap
 from ._common import CliError
+from .outputs import check_input
 
 BAG_HELP = ("a bag (ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap) holding octomap_msgs/Octomap "
             "messages may stand in for any map")
@@ -29,12 +29,12 @@ def _pick(values, index: int):
     return None if not values else values[0] if len(values) == 1 else values[index]
 
 
-def check_map_input(path: Path) -> None:
-    """Raise ``FileNotFoundError`` / ``IsADirectoryError`` naming ``path`` if it is neither a
-    map file nor a bag (a ROS 2 bag is a folder)."""
+def check_map_input(path: Path, what: str = "map") -> None:
+    """Raise ``CliError`` naming ``path`` if it is neither a ``what`` file nor a bag (a ROS 2
+    bag is a folder)."""
     if is_bag(path) and path.exists():
         return
-    check_input_file(path)
+    check_input(path, what)
 
 
 def load_map_inputs(paths, args, *, strict: bool = True) -> list[tuple[OccupancyMap, BagMap | None]]:

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from pathlib import Path
 
 from ..pipeline import REFINE_CHOICES, MergeConfig, load_config
 from ._common import CliError
 from .manifest import run_manifest
+from .outputs import check_input, check_writable_folder
 from .progress import show_bars
 
 EPILOG = """manifest (CSV with a header; inputs relative to the manifest, outputs to --out-dir):
@@ -25,9 +28,14 @@ A Dask cluster: on the scheduler machine run `dask scheduler`, on each worker ma
 `dask worker tcp://10.0.0.5:8786 --nthreads 1` in an environment with octomerge_jax installed
 (same version) and the map files at the same paths (shared filesystem). Workers with a GPU and
 jax[cuda12] installed run the kernels on the GPU automatically. Re-running the same command
-skips pairs whose output exists (resume); every pair's status is in DIR/summary.csv, each
-merged map gets a JSON report next to it. Exit code 0 if every pair merged or was skipped,
-6 if some failed (the others are complete).
+skips finished pairs (output and report both exist; --no-resume redoes them); every pair's
+status is in DIR/summary.csv (pending until it ends; earlier rows are kept), each merged map
+OUT gets its report OUT.json next to it. Outputs must lie inside DIR; a bad row (too few
+fields, a bad number, an output outside DIR or equal to an input) is an error for that row
+only. A lock file (DIR/.octomerge-batch.lock) refuses a second run on DIR while one runs.
+If every Dask worker is gone for batch.timeout_s (60 s), the pending pairs fail (kind
+no_workers). Exit code 0 if every pair merged or was skipped, 6 if some failed (the others
+are complete), 1 for an unreadable manifest, an unreachable scheduler or a locked DIR.
 """
 
 EXIT_SOME_FAILED = 6
@@ -53,18 +61,33 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    if not args.manifest.is_file():
-        raise CliError(f"{args.manifest}: no such file")
+    check_input(args.manifest, "manifest")
     if args.workers is not None and args.workers < 0:
         raise CliError(f"--workers must be >= 0, got {args.workers}", 2)
     try:
         cfg = load_config(args.config) if args.config else MergeConfig()
         if args.refine:
             cfg = cfg.replace(registration={"refine": args.refine})
-        rows = run_manifest(args.manifest, args.out_dir, config=cfg, workers=args.workers,
+    except (ValueError, FileNotFoundError) as err:
+        raise CliError(str(err)) from None
+    workers = cfg.batch.workers if args.workers is None else args.workers
+    cpus = os.cpu_count() or 1
+    if workers > cpus and not (args.scheduler or cfg.batch.scheduler):
+        print(f"octomerge batch: warning: --workers {workers} is more than this machine's {cpus} CPUs; "
+              f"using {cpus}", file=sys.stderr)
+        workers = cpus
+    if args.out_dir.exists() and not args.out_dir.is_dir():
+        raise CliError(f"{args.out_dir}: --out-dir is not a directory")
+    try:
+        args.out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise CliError(f"{args.out_dir}: cannot create --out-dir: {err.strerror or err}") from None
+    check_writable_folder(args.out_dir)
+    try:
+        rows = run_manifest(args.manifest, args.out_dir, config=cfg, workers=workers,
                             scheduler=args.scheduler, progress=show_bars(args.no_progress),
                             resume=False if args.no_resume else None)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, FileNotFoundError, RuntimeError) as err:
         raise CliError(str(err)) from None
     counts: dict = {}
     for r in rows:

@@ -7,13 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .._fileutil import check_not_input
 from ..insert import CapacityPlan, insert_point_clouds
 from ..io import save
 from ..io.bags import DEFAULT_MAX_POSE_GAP_S, is_bag, read_bag_scans
 from ..io.scans import Scan, read_scans
 from ..map import empty
 from ._common import CliError
+from ._inputs import check_map_input
+from .outputs import MAP_SUFFIXES, check_output, writing
 from .progress import Progress, show_bars
 
 EPILOG = """examples:
@@ -50,7 +51,7 @@ def register(subparsers) -> None:
     p.add_argument("--origin", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                    help="sensor position for a single point cloud file (default 0 0 0)")
     p.add_argument("--batch", type=int, default=8, help="scans per update batch (default 8)")
-    p.add_argument("--force", action="store_true", help="allow OUT to be the input file")
+    p.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     g = p.add_argument_group("ROS bag input")
     g.add_argument("--cloud-topic", metavar="T", help="sensor_msgs/PointCloud2 topic (required for a bag)")
@@ -64,11 +65,10 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    if args.output.suffix.lower() not in (".bt", ".ot"):
-        raise CliError(f"{args.output}: output must end in .bt or .ot")
     if not args.res > 0:
         raise CliError(f"--res must be positive, got {args.res}")
-    check_not_input(args.output, [args.scans], args.force)
+    check_map_input(args.scans, "scan")
+    check_output(args.output, inputs=[args.scans], force=args.force, suffixes=MAP_SUFFIXES, side=True)
     skipped = 0
     if is_bag(args.scans):
         if args.cloud_topic is None:
@@ -102,7 +102,8 @@ def run(args) -> int:
         m = insert_point_clouds(m, clouds[part], origins[part], args.max_range, batch_size=args.batch, plan=plan)
         bar.update(n=len(clouds[part]))
     bar.close()
-    save(m, args.output)
+    with writing(args.output):
+        save(m, args.output)
     n_pts = sum(len(c) for c in clouds)
     print(f"wrote {args.output}: {len(scans)} scans, {n_pts} points, {m.num_leaves} leaves "
           f"at {args.res:g} m" + (f" ({skipped} clouds without a pose skipped)" if skipped else ""))

@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .._fileutil import check_input_file
-from .._fileutil import check_not_input
 from ..io import num_nodes, save
 from ..io.bags import write_bag
 from ._common import CliError
 from ._inputs import add_bag_options, check_map_input, load_map_inputs
+from .outputs import MAP_SUFFIXES, check_output, writing
 
 EPILOG = """examples:
   octomerge convert robot1.ot robot1.bt     # full log-odds -> maximum likelihood (lossy)
@@ -21,7 +20,8 @@ EPILOG = """examples:
   octomerge convert room.ot room_bag/ --full  # a ROS 2 bag folder (MCAP), full payload
 
 .bt stores only free/occupied: converting to .bt applies maximum likelihood and OctoMap's
-prune, exactly as OctoMap's writeBinary does. Output is written atomically.
+prune, exactly as OctoMap's writeBinary does. Output is written atomically; an existing OUT
+is overwritten only with --force.
 """
 
 
@@ -34,7 +34,7 @@ def register(subparsers) -> None:
     p.add_argument("input", type=Path, metavar="IN", help="a .bt or .ot file, or a ROS bag")
     p.add_argument("output", type=Path, metavar="OUT",
                    help="the .bt or .ot file to write, or a bag (.bag: ROS 1; other: a ROS 2 bag folder)")
-    p.add_argument("--force", action="store_true", help="allow OUT to be IN (overwrite it)")
+    p.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file (IN too)")
     p.add_argument("--lenient", action="store_true",
                    help="accept trailing bytes and a wrong header size in IN")
     p.add_argument("--full", action="store_true",
@@ -47,19 +47,20 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     check_map_input(args.input)
-    to_bag = args.output.suffix.lower() not in (".bt", ".ot")
+    to_bag = args.output.suffix.lower() not in MAP_SUFFIXES
     if to_bag and not (args.output.suffix.lower() == ".bag" or not args.output.suffix):
         raise CliError(f"{args.output}: OUT must end in .bt or .ot (or .bag, or name a ROS 2 bag folder)")
-    check_not_input(args.output, [args.input], force=args.force)
+    check_output(args.output, inputs=[args.input], force=args.force, suffixes=None if to_bag else MAP_SUFFIXES)
     (m, b), = load_map_inputs([args.input], args, strict=not args.lenient)
-    if to_bag:
-        write_bag(args.output, m, binary=not args.full, storage=None if args.output.suffix else args.storage,
-                  frame_id=b.frame_id if b else "map", stamps_ns=[b.stamp_ns] if b else None)
-        size = sum(f.stat().st_size for f in args.output.rglob("*")) if args.output.is_dir() else \
-            args.output.stat().st_size
-    else:
-        save(m, args.output)
-        size = args.output.stat().st_size
+    with writing(args.output):
+        if to_bag:
+            write_bag(args.output, m, binary=not args.full, storage=None if args.output.suffix else args.storage,
+                      frame_id=b.frame_id if b else "map", stamps_ns=[b.stamp_ns] if b else None)
+            size = sum(f.stat().st_size for f in args.output.rglob("*")) if args.output.is_dir() else \
+                args.output.stat().st_size
+        else:
+            save(m, args.output)
+            size = args.output.stat().st_size
     print(f"{args.input} -> {args.output}: {m.num_leaves:,} leaves "
           f"({num_nodes(m):,} nodes) at {m.resolution:g} m, {size:,} bytes")
     return 0

@@ -18,6 +18,7 @@ from ..pipeline import DEMO_SCENES, REFINE_CHOICES, MergeConfig, load_config
 from ..io import save
 from ..pipeline import merge, transform_from_xyz_rpy
 from ._common import CliError
+from .outputs import check_writable_folder
 from .merge import write_figures
 from .plots import plot_merge_comparison
 from .progress import StageBar, show_bars
@@ -28,7 +29,7 @@ EPILOG = """examples:
   octomerge demo --yaw-error 0.5 --refine multi   # a guess plain ICP cannot fix
   octomerge demo --scene campus --resolution 0.2  # outdoor, 100 x 60 m, lidar (~2 min)
 
-Outputs: map1.bt, map2.bt (the robots' maps; rerun the merge with the printed command),
+Outputs (files of these names in DIR are replaced): map1.bt, map2.bt (the robots' maps; rerun the merge with the printed command),
 merged.bt, merged_no_icp.bt, report.json, overlap_before_after.png (Fig. 7.6),
 merged_map.png (Fig. 7.7), merge_with_without_icp.png (Fig. 7.8), icp_convergence.png.
 """
@@ -91,7 +92,13 @@ def run(args) -> int:
         raise CliError(str(err)) from None
     d = cfg.demo
     out = args.out_dir
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"{out}: --out-dir is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise CliError(f"{out}: cannot create --out-dir: {err.strerror or err}") from None
+    check_writable_folder(out)
     t0 = time.perf_counter()
     print(f"simulating two robots in the {d.scene} scene at {d.resolution:g} m ...", flush=True)
     bar = StageBar(show_bars(args.quiet), "demo")

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .._fileutil import check_not_input
-from ..io.export import export_map, write_tum
+from ..io.export import EXPORT_FORMATS, export_map, write_tum
 from ._common import CliError
 from ._inputs import add_bag_options, check_map_input, load_map_inputs
+from .outputs import check_input, check_output, writing
 from .progress import StageBar, show_bars
 
 EPILOG = """examples:
@@ -47,7 +47,7 @@ def register(subparsers) -> None:
                    help="which leaves to export (default: occupied)")
     p.add_argument("--points", action="store_true", help="leaf centres as points (.ply; a .pcd is always points)")
     p.add_argument("--ascii", action="store_true", help="a .pcd as text instead of binary")
-    p.add_argument("--force", action="store_true", help="allow OUT to be the input file")
+    p.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_bag_options(p)
     p.set_defaults(func=run)
@@ -71,24 +71,27 @@ def _transforms_of_report(path: Path) -> np.ndarray:
 
 
 def run(args) -> int:
-    check_not_input(args.output, [args.map], args.force)
     if args.map.suffix.lower() == ".json":
-        if not args.map.is_file():
-            raise CliError(f"{args.map}: no such file")
+        check_input(args.map, "report")
         if args.output.suffix.lower() not in TUM_SUFFIXES:
             raise CliError(f"{args.output}: a report exports to .tum or .txt (TUM poses)")
+        check_output(args.output, inputs=[args.map], force=args.force, side=True)
         Ts = _transforms_of_report(args.map)
-        write_tum(args.output, np.arange(len(Ts), dtype=np.float64), Ts)
+        with writing(args.output):
+            write_tum(args.output, np.arange(len(Ts), dtype=np.float64), Ts)
         print(f"wrote {args.output} ({len(Ts)} transform{'s' * (len(Ts) != 1)}, TUM)")
         return 0
     check_map_input(args.map)
+    check_output(args.output, inputs=[args.map], force=args.force, suffixes=EXPORT_FORMATS, side=True)
+    if args.points and args.output.suffix.lower() not in (".ply", ".pcd"):
+        raise CliError(f"{args.output}: --points needs a .ply output")
     if args.ascii and args.output.suffix.lower() != ".pcd":
         raise CliError(f"{args.output}: --ascii applies to a .pcd", 2)
     bar = StageBar(show_bars(args.quiet), "export", total=2)
     try:
         with bar.stage("load"):
             (m, _), = load_map_inputs([args.map], args)
-        with bar.stage("write"):
+        with bar.stage("write"), writing(args.output):
             export_map(m, args.output, which=args.which, color_by=args.color, points=args.points,
                        ascii=args.ascii)
     finally:

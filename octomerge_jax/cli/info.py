@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import morton
-from .._fileutil import check_input_file
 from ..io import read_header
 from ..io.bags import is_bag
 from ._inputs import add_bag_options, load_map_inputs
+from .outputs import check_input
 
 EPILOG = """examples:
   octomerge info room.bt
@@ -48,7 +48,7 @@ def summarize(path: Path, lenient: bool = False, args=None) -> dict:
         (m, b), = load_map_inputs([path], args, strict=not lenient)
         binary, tree_id, legacy, size, nbytes = b.binary, b.tree_id, False, None, b.payload_bytes
     else:
-        check_input_file(path)
+        check_input(path, "map")
         header = read_header(path)
         (m, _), = load_map_inputs([path], args, strict=not lenient)
         binary, tree_id, legacy, size, nbytes = (header.binary, header.tree_id, header.legacy, header.size,

@@ -14,18 +14,20 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import math
 import os
 import time
 from pathlib import Path
 
-from .._fileutil import atomic_output, check_not_input
+from .._fileutil import atomic_output
 from ..pipeline import MergeConfig, config_from_dict, config_to_dict
 from ..io import load, save
 from ..pipeline import MergeError, merge, transform_from_xyz_rpy
 from .dask_runner import map_on_dask
+from .outputs import MAP_SUFFIXES, angle_warnings, folder_lock, inside, same_file
 from .progress import Progress
 
-__all__ = ["ManifestRow", "SUMMARY_FIELDS", "read_manifest", "run_manifest", "run_pair"]
+__all__ = ["ManifestRow", "SUMMARY_FIELDS", "read_manifest", "report_path", "run_manifest", "run_pair"]
 
 SUMMARY_FIELDS = ["index", "map1", "map2", "output", "status", "kind", "message", "refine",
                   "icp_status", "icp_iterations", "icp_rmse", "icp_fitness", "leaves_merged",
@@ -38,7 +40,8 @@ _GUESS = ("x", "y", "z", "roll", "pitch", "yaw")
 @dataclasses.dataclass(frozen=True)
 class ManifestRow:
     """One pair of a manifest: absolute ``map1``, ``map2``, ``output`` paths, the guess
-    ``(x, y, z, roll, pitch, yaw)`` [m, rad] and optional ground truth of the same form."""
+    ``(x, y, z, roll, pitch, yaw)`` [m, rad] and optional ground truth of the same form.
+    ``error``: why the row cannot run (its paths are then as written), else ``""``."""
 
     index: int
     map1: str
@@ -46,52 +49,101 @@ class ManifestRow:
     output: str
     guess: tuple = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     truth: tuple | None = None
+    error: str = ""
+
+
+class _RowError(ValueError):
+    pass
+
+
+def report_path(output) -> Path:
+    """Where ``run_pair`` writes the JSON report of ``output``: ``OUTPUT.json`` beside it
+    (``a.bt.json`` and ``a.ot.json`` stay apart; never a name an output can have)."""
+    output = Path(output)
+    return output.with_name(output.name + ".json")
 
 
 def read_manifest(path, out_dir) -> list[ManifestRow]:
-    """Parse a manifest CSV with a header row: required ``map1,map2,output``; optional
-    ``x,y,z,roll,pitch,yaw`` (initial guess ``T_1_2``, metres/radians) and
-    ``true_x,...,true_yaw`` (ground truth, for thesis errors). Inputs are relative to the
-    manifest's folder, outputs to ``out_dir``. Raises ``ValueError`` naming the line."""
+    """Parse a manifest CSV (UTF-8, a byte-order mark allowed) with a header row: required
+    ``map1,map2,output``; optional ``x,y,z,roll,pitch,yaw`` (initial guess ``T_1_2``,
+    metres/radians) and ``true_x,...,true_yaw`` (ground truth, for thesis errors). Inputs are
+    relative to the manifest's folder, outputs to ``out_dir`` and must stay inside it.
+
+    A bad row (wrong number of fields, a bad number, an empty path, an output outside
+    ``out_dir``, not ``.bt``/``.ot``, listed twice or equal to an input) comes back with
+    ``error`` set (naming ``path:line``); the other rows are unaffected. Raises
+    ``ValueError`` only for a manifest that cannot be read as a whole (not UTF-8, no
+    header, a required column missing)."""
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path}: is a directory, not a manifest")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: manifest not found")
     base, out_dir = path.parent, Path(out_dir)
-    rows = []
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        missing = {"map1", "map2", "output"} - set(reader.fieldnames or [])
-        if missing:
-            raise ValueError(f"{path}: missing column(s) {', '.join(sorted(missing))} "
-                             f"(need map1,map2,output[,x,y,z,roll,pitch,yaw])")
-        outputs = set()
-        for k, r in enumerate(reader):
-            line = k + 2
-
-            def num(name, default=0.0):
-                v = (r.get(name) or "").strip()
-                if not v:
-                    return default
+    rows: list[ManifestRow] = []
+    outputs: set = set()
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            fields = [c.strip() for c in reader.fieldnames or []]
+            reader.fieldnames = fields
+            missing = {"map1", "map2", "output"} - set(fields)
+            if missing:
+                raise ValueError(f"{path}: missing column(s) {', '.join(sorted(missing))} "
+                                 f"(need map1,map2,output[,x,y,z,roll,pitch,yaw])")
+            for k, r in enumerate(reader):
+                where = f"{path}:{reader.line_num}"
                 try:
-                    x = float(v)
-                except ValueError:
-                    raise ValueError(f"{path}:{line}: {name} = {v!r} is not a number") from None
-                return x
-
-            guess = tuple(num(g) for g in _GUESS)
-            truth = None
-            if any((r.get("true_" + g) or "").strip() for g in _GUESS):
-                truth = tuple(num("true_" + g) for g in _GUESS)
-            m1, m2, out = (r.get(c, "").strip() for c in ("map1", "map2", "output"))
-            if not (m1 and m2 and out):
-                raise ValueError(f"{path}:{line}: map1, map2 and output must not be empty")
-            out_p = (out_dir / out).resolve()
-            if out_p in outputs:
-                raise ValueError(f"{path}:{line}: output {out} appears twice")
-            outputs.add(out_p)
-            rows.append(ManifestRow(k, str((base / m1).resolve()), str((base / m2).resolve()),
-                                    str(out_p), guess, truth))
+                    rows.append(_parse_row(k, r, len(fields), base, out_dir, outputs, where))
+                except _RowError as err:
+                    raw = [(r.get(c) or "").strip() if isinstance(r.get(c), str) else "" for c in
+                           ("map1", "map2", "output")]
+                    rows.append(ManifestRow(k, *raw, error=f"{where}: {err}"))
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
+    except csv.Error as err:
+        raise ValueError(f"{path}: not a readable CSV file: {err}") from None
     return rows
+
+
+def _parse_row(k, r, n_fields, base, out_dir, outputs, where) -> ManifestRow:
+    extra = r.get(None) or []
+    given = [v for key, v in r.items() if key is not None and v is not None]
+    if extra or len(given) != n_fields:
+        raise _RowError(f"{len(given) + len(extra)} fields, the header has {n_fields}")
+
+    def num(name):
+        v = (r.get(name) or "").strip()
+        if not v:
+            return 0.0
+        try:
+            x = float(v)
+        except ValueError:
+            raise _RowError(f"{name} = {v!r} is not a number") from None
+        if not math.isfinite(x) or "_" in v:
+            raise _RowError(f"{name} = {v!r} is not a finite number")
+        return x
+
+    guess = tuple(num(g) for g in _GUESS)
+    truth = None
+    if any((r.get("true_" + g) or "").strip() for g in _GUESS):
+        truth = tuple(num("true_" + g) for g in _GUESS)
+    m1, m2, out = (r[c].strip() for c in ("map1", "map2", "output"))
+    if not (m1 and m2 and out):
+        raise _RowError("map1, map2 and output must not be empty")
+    if Path(out).suffix.lower() not in MAP_SUFFIXES:
+        raise _RowError(f"output {out} must end in .bt or .ot")
+    if Path(out).is_absolute() or not inside(out_dir / out, out_dir):
+        raise _RowError(f"output {out} is outside --out-dir {out_dir} (give a path inside it)")
+    out_p = (out_dir / out).resolve()
+    if out_p in outputs:
+        raise _RowError(f"output {out} appears twice")
+    outputs.add(out_p)
+    p1, p2 = (base / m1).resolve(), (base / m2).resolve()
+    for written in (out_p, report_path(out_p)):
+        if same_file(written, p1) or same_file(written, p2):
+            raise _RowError(f"output {written.name} is also an input; refusing to overwrite it")
+    return ManifestRow(k, str(p1), str(p2), str(out_p), guess, truth)
 
 
 def _row_result(row: ManifestRow, status, kind="", message="", report=None, seconds=0.0) -> dict:
@@ -113,24 +165,27 @@ def _row_result(row: ManifestRow, status, kind="", message="", report=None, seco
 
 
 def run_pair(row: ManifestRow, config_dict: dict, write_reports: bool = True) -> dict:
-    """Load, merge and save one manifest row (the Dask task; also used locally). Returns the
-    summary row; never raises for a bad pair."""
+    """Load, merge and save one manifest row (the Dask task; also used locally). The map is
+    saved, then its report (``report_path``): the pair counts as finished only when both
+    exist. Returns the summary row; never raises for a bad pair."""
     t0 = time.perf_counter()
     try:
+        if row.error:
+            return _row_result(row, "error", "manifest", row.error)
         cfg = config_from_dict(config_dict)
         for p in (row.map1, row.map2):
             if not Path(p).is_file():
-                raise FileNotFoundError(f"{p}: no such file")
-        check_not_input(row.output, [row.map1, row.map2])
+                raise FileNotFoundError(f"{p}: {'is a directory' if Path(p).is_dir() else 'no such file'}")
         m1, m2 = load(row.map1), load(row.map2)
         T_true = None if row.truth is None else transform_from_xyz_rpy(*row.truth)
         merged, report = merge(m1, m2, transform_from_xyz_rpy(*row.guess), T_1_2_true=T_true, config=cfg)
         Path(row.output).parent.mkdir(parents=True, exist_ok=True)
         save(merged, row.output)
         if write_reports:
-            report.to_json(str(Path(row.output).with_suffix(".json")))
-        return _row_result(row, "ok", report=report, seconds=time.perf_counter() - t0,
-                           message="; ".join(report.warnings))
+            report.to_json(str(report_path(row.output)))
+        notes = angle_warnings(("roll", "pitch", "yaw"), row.guess[3:], False, "",
+                               " (manifest angles are radians)") + list(report.warnings)
+        return _row_result(row, "ok", report=report, seconds=time.perf_counter() - t0, message="; ".join(notes))
     except MergeError as err:
         return _row_result(row, "error", err.kind, str(err), seconds=time.perf_counter() - t0)
     except Exception as err:  # a bad pair is recorded, the batch goes on
@@ -138,13 +193,27 @@ def run_pair(row: ManifestRow, config_dict: dict, write_reports: bool = True) ->
         return _row_result(row, "error", kind, str(err), seconds=time.perf_counter() - t0)
 
 
-def _write_summary(path: Path, rows: dict):
+def _write_summary(path: Path, rows: dict, earlier: list):
     with atomic_output(path) as tmp:
         with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=SUMMARY_FIELDS)
+            w = csv.DictWriter(f, fieldnames=SUMMARY_FIELDS, extrasaction="ignore")
             w.writeheader()
             for k in sorted(rows):
                 w.writerow(rows[k])
+            w.writerows(earlier)
+
+
+def _read_summary(path: Path) -> dict:
+    """Rows of an earlier ``summary.csv`` by output path (an unreadable file gives none)."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            return {r.get("output") or "": r for r in csv.DictReader(f)}
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return {}
+
+
+def _finished(row: ManifestRow, write_reports: bool) -> bool:
+    return Path(row.output).is_file() and (not write_reports or report_path(row.output).is_file())
 
 
 def run_manifest(manifest, out_dir, *, config: MergeConfig | None = None, workers: int | None = None,
@@ -155,8 +224,16 @@ def run_manifest(manifest, out_dir, *, config: MergeConfig | None = None, worker
 
     ``scheduler``: a Dask scheduler address (``tcp://host:8786``) or a ``distributed.Client``;
     ``workers > 0`` without a scheduler starts a local Dask cluster of that many single-thread
-    worker processes; otherwise pairs run in this process. ``resume`` (default: config) skips
-    rows whose output file exists (recorded as ``skipped``).
+    worker processes (at most one per pair); otherwise pairs run in this process. ``resume``
+    (default: config) skips a pair that is finished: its output and its report exist
+    (status ``skipped``, the earlier summary row's figures kept). Pairs not yet run are
+    ``pending`` in the summary until they end; if every Dask worker is gone for
+    ``config.batch.timeout_s`` they end as errors of kind ``no_workers``. Rows of an earlier
+    ``summary.csv`` whose output is not in this manifest are kept at its end.
+
+    A bad row is an error row; the others run. Raises ``ValueError`` for a manifest that
+    cannot be read, ``cli.CliError`` if another run holds ``out_dir``'s lock file,
+    ``dask_runner.SchedulerError`` if the scheduler cannot be reached.
     """
     cfg = MergeConfig() if config is None else config
     workers = cfg.batch.workers if workers is None else int(workers)
@@ -166,37 +243,55 @@ def run_manifest(manifest, out_dir, *, config: MergeConfig | None = None, worker
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = read_manifest(manifest, out_dir)
     summary_path = out_dir / "summary.csv"
-    done: dict = {}
-    todo = []
-    for row in rows:
-        if resume and Path(row.output).is_file():
-            done[row.index] = _row_result(row, "skipped", message="output exists (resume)")
-        else:
-            todo.append(row)
-    bar = Progress(len(rows), progress)
-    for _ in done:
-        bar.update("skipped")
-    cfg_dict = config_to_dict(cfg)
-    if todo:
-        _write_summary(summary_path, done)
-    try:
-        if scheduler or workers > 0:
-            for row, res, err in map_on_dask(run_pair, todo, cfg_dict, write_reports, scheduler=scheduler,
-                                             workers=workers, key=_task_key):
-                if err is not None:
-                    res = _row_result(row, "error", type(err).__name__, f"task failed: {err}")
-                done[row.index] = res
-                bar.update(res["status"])
-                _write_summary(summary_path, done)
-        else:
-            for row in todo:
-                done[row.index] = run_pair(row, cfg_dict, write_reports)
-                bar.update(done[row.index]["status"])
-                _write_summary(summary_path, done)
-    finally:
-        bar.close()
-        _write_summary(summary_path, done)
+    with folder_lock(out_dir):
+        earlier = _read_summary(summary_path)
+        done: dict = {}
+        todo = []
+        skipped = 0
+        for row in rows:
+            if row.error:
+                done[row.index] = _row_result(row, "error", "manifest", row.error)
+            elif resume and _finished(row, write_reports):
+                before = earlier.get(row.output, {})
+                done[row.index] = {**_row_result(row, "skipped", message="output exists (resume)"),
+                                   **{k: before[k] for k in _KEPT if before.get(k)}}
+                skipped += 1
+            else:
+                todo.append(row)
+                done[row.index] = _row_result(row, "pending", message="not finished")
+        current = {r["output"] for r in done.values()}
+        kept = [r for out, r in earlier.items() if out not in current]
+        bar = Progress(len(rows), progress)
+        for k in sorted(done):
+            if done[k]["status"] != "pending":
+                bar.update(done[k]["status"])
+        cfg_dict = config_to_dict(cfg)
+        _write_summary(summary_path, done, kept)
+        try:
+            if todo and (scheduler or workers > 0):
+                for row, res, err in map_on_dask(run_pair, todo, cfg_dict, write_reports, scheduler=scheduler,
+                                                 workers=min(workers, len(todo)), key=_task_key,
+                                                 timeout_s=cfg.batch.timeout_s):
+                    if err is not None:
+                        res = _row_result(row, "error", getattr(err, "kind", type(err).__name__),
+                                          f"task failed: {err}")
+                    done[row.index] = res
+                    bar.update(res["status"])
+                    _write_summary(summary_path, done, kept)
+            else:
+                for row in todo:
+                    done[row.index] = run_pair(row, cfg_dict, write_reports)
+                    bar.update(done[row.index]["status"])
+                    _write_summary(summary_path, done, kept)
+        finally:
+            bar.close()
+            _write_summary(summary_path, done, kept)
     return [done[k] for k in sorted(done)]
+
+
+# figures of an earlier run kept in the row of a pair skipped on resume
+_KEPT = ("seconds", "refine", "icp_status", "icp_iterations", "icp_rmse", "icp_fitness", "leaves_merged", "epsilon_r_init",
+         "epsilon_t_init", "epsilon_r", "epsilon_t", "displacement_init", "displacement", "host")
 
 
 def _task_key(row: ManifestRow) -> str:

@@ -8,14 +8,13 @@ import sys
 import time
 from pathlib import Path
 
-from .._fileutil import check_input_file
-from .._fileutil import check_not_input
 from ..pipeline import COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, REFINE_CHOICES, MergeConfig, load_config
 from ..io import save
 from ..io.bags import write_bag
 from ..pipeline import MergeError, icp_trace, merge, transform_from_xyz_rpy
 from ._common import CliError
 from ._inputs import add_bag_options, check_map_input, load_map_inputs
+from .outputs import FIGURE_SUFFIXES, MAP_SUFFIXES, angle_warnings, check_output, writing
 from .progress import StageBar, show_bars
 from .plots import plot_icp_convergence, plot_map, plot_overlap
 from .view import add_view_options, require_viewer, visualize_merge
@@ -38,7 +37,9 @@ EPILOG = """examples:
 
 The guess T_1_2 maps map 2's frame into map 1's: x y z in metres, roll pitch yaw in radians
 (R = Rz(yaw) Ry(pitch) Rx(roll), as OctoMap's Pose6D). OUT is .bt (maximum likelihood) or .ot
-(log-odds) and is in map 1's frame. Outputs are written atomically; inputs are never overwritten.
+(log-odds) and is in map 1's frame. Outputs are written atomically and checked before any
+compute; an existing file (an input too, for OUT) is overwritten only with --force. An angle
+beyond 2 pi rad gets a warning (degrees without --degrees?).
 
 exit codes: 0 merged (an unconverged ICP is a warning unless --strict), 1 bad input (missing or
 unreadable file, NaN guess, ...), 2 usage, 3 resolutions differ (see --resample), 4 no overlap
@@ -91,7 +92,8 @@ def register(subparsers) -> None:
     o.add_argument("--visualize", action="store_true",
                    help="after merging, serve a live 3-D view (octomerge view; needs viser)")
     add_view_options(p)
-    o.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
+    o.add_argument("--force", action="store_true",
+                   help="allow outputs to overwrite existing files (OUT may replace an input)")
     o.add_argument("--out-bag", type=Path, metavar="BAG",
                    help="also write the merged map as one octomap_msgs/Octomap message (binary for a .bt OUT, "
                         "full for .ot) in map 1's frame: BAG.bag is a ROS 1 bag, other names a ROS 2 bag folder")
@@ -102,8 +104,9 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def guess_from_args(args, name: str = "initial guess"):
-    """``(x, y, z, roll, pitch, yaw)`` [m, rad] from positional numbers or --xyz/--rpy."""
+def guess_from_args(args, name: str = "initial guess", rpy_flag: str = "--rpy"):
+    """``(x, y, z, roll, pitch, yaw)`` [m, rad] from positional numbers or --xyz/--rpy; warns
+    (stderr) about an angle beyond a full turn (``outputs.angle_warnings``)."""
     pose = list(args.pose or [])
     if pose and (args.xyz or args.rpy):
         raise CliError("give the guess either as 6 positional numbers or with --xyz/--rpy, not both", 2)
@@ -115,6 +118,8 @@ def guess_from_args(args, name: str = "initial guess"):
     for label, v in zip(("x", "y", "z", "roll", "pitch", "yaw"), vals):
         if not math.isfinite(v):
             raise CliError(f"{name}: {label} = {v} is not a finite number", EXIT_INPUT)
+    for w in angle_warnings(("roll", "pitch", "yaw"), rpy, args.degrees, rpy_flag if not pose else name + ":"):
+        print(f"octomerge: warning: {w}", file=sys.stderr)
     if args.degrees:
         rpy = [math.radians(v) for v in rpy]
     return (*xyz, *rpy)
@@ -135,32 +140,34 @@ def config_from_args(args):
     return cfg.replace(registration=reg, transform=tr, fuse=fu)
 
 
-def _check_output(out: Path, inputs, force: bool, what: str = "OUT"):
-    if out.suffix.lower() not in (".bt", ".ot"):
-        raise CliError(f"{out}: {what} must end in .bt or .ot")
-    check_not_input(out, inputs, force=False)  # never overwrite an input, even with --force
-    if out.exists() and not force:
-        raise CliError(f"{out} exists; pass --force to overwrite it")
-    if str(out.parent) and not out.parent.exists():
-        raise CliError(f"{out}: folder {out.parent} does not exist")
+def check_outputs(args) -> None:
+    """Every output of ``merge`` checked before any compute (``cli/outputs.py``)."""
+    inputs = [args.in1, args.in2]
+    check_output(args.out, inputs=inputs, force=args.force, suffixes=MAP_SUFFIXES)
+    done = [args.out]
+    if args.out_bag is not None:
+        check_output(args.out_bag, inputs=inputs, force=args.force, what="--out-bag", side=True, others=done)
+        done.append(args.out_bag)
+    for flag, path, suffixes in (("--report", args.report, None), ("--figure", args.figure, FIGURE_SUFFIXES),
+                                 ("--map-figure", args.map_figure, FIGURE_SUFFIXES),
+                                 ("--icp-figure", args.icp_figure, FIGURE_SUFFIXES)):
+        if path is not None:
+            check_output(path, inputs=inputs, force=args.force, suffixes=suffixes, what=flag, side=True,
+                         others=done)
+            done.append(path)
 
 
 def run(args) -> int:
     for p in (args.in1, args.in2):
         check_map_input(p)
-    _check_output(args.out, [args.in1, args.in2], args.force)
-    if args.out_bag is not None:
-        _check_out_bag(args.out_bag, [args.in1, args.in2, args.out], args.force)
-    for extra in (args.report, args.figure, args.map_figure, args.icp_figure):
-        if extra is not None:
-            _check_output_side(extra, [args.in1, args.in2, args.out])
+    check_outputs(args)
     if args.visualize:
         require_viewer()
     guess = guess_from_args(args)
     truth = None
     if args.true_xyz or args.true_rpy:
         ns = argparse.Namespace(pose=[], xyz=args.true_xyz, rpy=args.true_rpy, degrees=args.degrees)
-        truth = transform_from_xyz_rpy(*guess_from_args(ns, "ground truth"))
+        truth = transform_from_xyz_rpy(*guess_from_args(ns, "ground truth", "--true-rpy"))
     try:
         cfg = config_from_args(args)
     except (ValueError, FileNotFoundError) as err:
@@ -180,15 +187,18 @@ def run(args) -> int:
     finally:
         bar.close()
     t1 = time.perf_counter()
-    save(merged, args.out)
+    with writing(args.out):
+        save(merged, args.out)
     if args.out_bag is not None:  # map 1's frame; the later input stamp (now if neither is a bag)
         stamps = [b.stamp_ns for b in (b1, b2) if b is not None]
-        write_bag(args.out_bag, merged, binary=args.out.suffix.lower() == ".bt", frame_id=b1.frame_id if b1 else "map",
-                  stamps_ns=[max(stamps)] if stamps else None,
-                  storage=None if args.out_bag.suffix.lower() == ".bag" else args.out_bag_storage)
+        with writing(args.out_bag):
+            write_bag(args.out_bag, merged, binary=args.out.suffix.lower() == ".bt",
+                      frame_id=b1.frame_id if b1 else "map", stamps_ns=[max(stamps)] if stamps else None,
+                      storage=None if args.out_bag.suffix.lower() == ".bag" else args.out_bag_storage)
     report = report.with_timings(load=t_load, save=time.perf_counter() - t1)
     if args.report:
-        report.to_json(args.report)
+        with writing(args.report):
+            report.to_json(args.report)
     write_figures(report, merged, args.figure, args.map_figure, args.icp_figure, cfg, truth)
     say(report.summary())
     say(f"wrote {args.out} ({merged.num_leaves:,} leaves)" + "".join(
@@ -200,30 +210,18 @@ def run(args) -> int:
     return 0
 
 
-def _check_out_bag(path: Path, inputs, force: bool):
-    check_not_input(path, inputs, force=False)
-    if path.exists() and not force:
-        raise CliError(f"{path} exists; pass --force to overwrite it")
-    if str(path.parent) and not path.parent.exists():
-        raise CliError(f"{path}: folder {path.parent} does not exist")
-
-
-def _check_output_side(path: Path, inputs):
-    check_not_input(path, inputs, force=False)
-    if str(path.parent) and not path.parent.exists():
-        raise CliError(f"{path}: folder {path.parent} does not exist")
-
-
 def write_figures(report, merged, figure, map_figure, icp_figure, cfg, truth=None):
     """Figures for a finished merge (each optional)."""
     if figure is not None:
         eps = None
         if report.epsilon_r is not None:
             eps = ((report.epsilon_r_init, report.epsilon_t_init), (report.epsilon_r, report.epsilon_t))
-        plot_overlap(report.points_1, report.points_2, report.T_1_2_init, report.T_1_2, figure,
-                     epsilons=eps)
+        with writing(figure):
+            plot_overlap(report.points_1, report.points_2, report.T_1_2_init, report.T_1_2, figure,
+                         epsilons=eps)
     if map_figure is not None:
-        plot_map(merged, map_figure, title="merged map (map 1 frame)")
+        with writing(map_figure):
+            plot_map(merged, map_figure, title="merged map (map 1 frame)")
     if icp_figure is not None:
         if report.icp is None:
             print("octomerge merge: warning: --icp-figure needs ICP (refine is none); skipped",
@@ -234,4 +232,5 @@ def write_figures(report, merged, figure, map_figure, icp_figure, cfg, truth=Non
                 start = report.icp_result.hypotheses[int(report.icp_result.best_index)]
             tr = icp_trace(report.points_1, report.points_2, start, report.resolution, cfg,
                            T_1_2_true=truth)
-            plot_icp_convergence(tr, icp_figure)
+            with writing(icp_figure):
+                plot_icp_convergence(tr, icp_figure)

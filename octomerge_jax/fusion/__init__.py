@@ -68,7 +68,7 @@ from ..map import OccupancyMap
 from ._many import fuse_maps
 from ._pair import fuse_pair
 from ._report import FuseReport, FuseResult
-from ._rules import MODE, RULES, check_rule
+from ._rules import MODE, RULES, check_rule, check_weights
 from ._sizing import default_gap_capacity, default_gap_leaves
 
 __all__ = ["RULES", "FuseReport", "FuseResult", "fuse", "fuse_many", "fuse_with_report",
@@ -116,6 +116,7 @@ def fuse_with_report(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, w
     check_rule(rule)
     if rule != "weighted":
         weights = (1.0, 1.0)
+    check_weights(weights, 2)
     w1, w2 = (jnp.asarray(w, jnp.float32) for w in weights)
     mode = jnp.asarray(MODE[rule], jnp.int32)
     return FuseResult(*fuse_pair(m1, m2, w1, w2, mode, capacity, prune, gap_capacity, "fuse"))
@@ -170,8 +171,7 @@ def fuse_many_with_report(maps: Sequence[OccupancyMap], rule: str = "sum", *, we
     check_rule(rule)
     if weights is None or rule != "weighted":
         weights = [1.0] * len(maps)
-    if len(weights) != len(maps):
-        raise ValueError(f"weights has {len(weights)} entries for {len(maps)} maps")
+    check_weights(weights, len(maps))
     w = jnp.asarray(np.asarray(weights, np.float32))
     mode = jnp.asarray(MODE[rule], jnp.int32)
     if len(maps) == 2:  # the pair kernel is the one-pass refinement of two maps

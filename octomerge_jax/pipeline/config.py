@@ -155,12 +155,15 @@ class BatchConfig:
     - ``resume``: skip pairs whose output exists.
     - ``group_by_bucket``: run pairs of one capacity bucket through one jitted ``vmap`` call
       (``merge_batch``) instead of one by one.
+    - ``timeout_s`` [s]: how long to wait for the scheduler to answer and, once every worker
+      is gone, for one to come back before the pending pairs fail.
     """
 
     workers: int = 0
     scheduler: str = ""
     resume: bool = True
     group_by_bucket: bool = True
+    timeout_s: float = 60.0  # wait for a scheduler to answer / for a worker when none is left
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,33 +223,27 @@ def validate(cfg: MergeConfig) -> None:
     _choice(t.interpolation, ("trilinear", "nearest", "thesis"), "transform.interpolation")
     _choice(t.space, ("probability", "log_odds"), "transform.space")
     _choice(f.rule, ("sum", "max", "weighted"), "fuse.rule")
-    for key, value in (("registration.max_iterations", r.max_iterations),
-                       ("registration.min_inliers", r.min_inliers),
-                       ("registration.cell_capacity", r.cell_capacity),
-                       ("registration.correlation_hypotheses", r.correlation_hypotheses),
-                       ("transform.chunk_bricks", t.chunk_bricks)):
-        if value < 1:
-            raise ValueError(f"{key} must be >= 1, got {value}")
-    if r.correlation_dense < 0:
-        raise ValueError(f"registration.correlation_dense must be >= 0, got {r.correlation_dense}")
-    if not (math.isfinite(r.far_margin) and r.far_margin >= 0):
-        raise ValueError(f"registration.far_margin must be a finite number >= 0, got {r.far_margin}")
-    if r.min_overlap_points < 0:
-        raise ValueError(f"registration.min_overlap_points must be >= 0, got {r.min_overlap_points}")
+    for key, (lo, hi, lo_open) in _RANGES.items():
+        section, name = key.split(".")
+        value = getattr(getattr(cfg, section), name)
+        if value is not None:
+            _check_range(key, value, lo, hi, lo_open)
+    if (r.min_correspondence_distance is not None and r.max_correspondence_distance is not None
+            and r.min_correspondence_distance > r.max_correspondence_distance):
+        raise ValueError("registration.min_correspondence_distance must not exceed "
+                         f"registration.max_correspondence_distance, got {r.min_correspondence_distance} > "
+                         f"{r.max_correspondence_distance}")
     if not 0.0 < r.shrink_factor < 1.0:
         raise ValueError(f"registration.shrink_factor must lie in (0, 1), got {r.shrink_factor}")
-    for key in ("overlap_margin", "max_correspondence_distance", "min_correspondence_distance",
-                "transformation_epsilon"):
-        v = getattr(r, key)
-        if v is not None and not (math.isfinite(v) and v > 0):
-            raise ValueError(f"registration.{key} must be a positive number of metres, got {v}")
-    if cfg.batch.workers < 0:
-        raise ValueError(f"batch.workers must be >= 0, got {cfg.batch.workers}")
-    if not cfg.demo.resolution > 0:
-        raise ValueError(f"demo.resolution must be positive, got {cfg.demo.resolution}")
+    _check_weights(f.weights)
     _choice(cfg.demo.scene, DEMO_SCENES, "demo.scene")
     if not (math.isfinite(cfg.demo.spacing) and cfg.demo.spacing >= 0):
         raise ValueError(f"demo.spacing must be >= 0 metres (0: the scene's own), got {cfg.demo.spacing}")
+    if cfg.demo.spacing != 0:
+        _check_range("demo.spacing", cfg.demo.spacing, *_DEMO_SPACING, False)
+    for key in ("error_xyz", "error_rpy_rad"):
+        for v in getattr(cfg.demo, key):
+            _check_range(f"demo.{key}", v, -_DEMO_ERROR[key], _DEMO_ERROR[key], False)
 
 
 def _choice(value, choices, key):
@@ -416,19 +413,24 @@ def field_docs(section_type) -> dict[str, str]:
 
 
 def load_config(path) -> MergeConfig:
-    """Read a ``.toml`` or ``.json`` config file (partial files are fine). Raises
-    ``FileNotFoundError`` or ``ValueError`` naming the file."""
+    """Read a ``.toml`` or ``.json`` config file (UTF-8, partial files are fine). Raises
+    ``FileNotFoundError``, ``IsADirectoryError`` or ``ValueError`` naming the file."""
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path}: is a directory, not a config file")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: config file not found")
+    kind = "JSON" if path.suffix.lower() == ".json" else "TOML"
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as err:
         raise ValueError(f"{path}: not UTF-8 text (byte {err.start})") from None
     try:
-        data = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
+        data = json.loads(text) if kind == "JSON" else tomllib.loads(text)
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'TOML'}: {err}") from None
+        raise ValueError(f"{path}: not valid {kind}: {err}") from None
+    except RecursionError:
+        raise ValueError(f"{path}: not valid {kind}: nested too deeply") from None
     try:
         return config_from_dict(data)
     except ValueError as err:
@@ -443,3 +445,49 @@ def save_config(cfg: MergeConfig, path) -> None:
     else:
         text = dumps_toml(cfg)
     atomic_write_bytes(path, text.encode())
+
+
+# --- cli
+# Ranges of the numeric settings, [lo, hi] (``lo_open``: (lo, hi]): beyond them a value crashes
+# a stage or makes it run away (a 1e-9 yaw step is 6e9 ICP starts, 1e8 chunk bricks 10 GiB).
+_RANGES = {
+    "registration.overlap_margin": (0.0, 1e4, True),
+    "registration.min_overlap_points": (0, 2**31 - 1, False),
+    "registration.max_correspondence_distance": (0.0, 1e4, True),
+    "registration.min_correspondence_distance": (0.0, 1e4, True),
+    "registration.transformation_epsilon": (0.0, 1e4, True),
+    "registration.max_iterations": (1, 100_000, False),
+    "registration.min_inliers": (1, 2**31 - 1, False),
+    "registration.cell_capacity": (1, 1024, False),
+    "registration.yaw_step_rad": (2 * math.pi / 720, 2 * math.pi, False),  # at most 720 yaw starts
+    "registration.roll_pitch_offset_rad": (0.0, math.pi, False),
+    "registration.correlation_hypotheses": (1, 1024, False),
+    "registration.correlation_dense": (0, 1024, False),
+    "registration.far_margin": (0.0, 1e3, False),
+    "transform.chunk_bricks": (1, 1 << 16, False),
+    "batch.workers": (0, 1024, False),
+    "batch.timeout_s": (0.0, 1e6, True),
+    "demo.resolution": (0.02, 5.0, False),
+    "demo.seed": (0, 2**32 - 1, False),
+}
+_DEMO_SPACING = (0.1, 100.0)  # metres between scans, when not 0 (the scene's own)
+_DEMO_ERROR = {"error_xyz": 1e3, "error_rpy_rad": 2 * math.pi}  # |error| bound, metres / radians
+_MAX_WEIGHT = 1e6  # a larger fusion weight turns float32 log-odds into inf / nan
+
+
+def _check_range(key: str, value, lo, hi, lo_open: bool) -> None:
+    """Raise ``ValueError`` naming ``key`` unless ``value`` is a finite number in ``[lo, hi]``
+    (``(lo, hi]`` when ``lo_open``)."""
+    finite = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not (finite and (value > lo if lo_open else value >= lo) and value <= hi):
+        raise ValueError(f"{key} must lie in {'(' if lo_open else '['}{lo:g}, {hi:g}], got {value!r}")
+
+
+def _check_weights(weights) -> None:
+    """``fuse.weights``: one finite weight in ``[0, 1e6]`` per map (at least 2), not all 0."""
+    if len(weights) < 2:
+        raise ValueError(f"fuse.weights must hold one weight per map (at least 2), got {list(weights)}")
+    if not all(math.isfinite(w) and 0 <= w <= _MAX_WEIGHT for w in weights):
+        raise ValueError(f"fuse.weights must be finite numbers in [0, {_MAX_WEIGHT:g}], got {list(weights)}")
+    if not any(w > 0 for w in weights):
+        raise ValueError(f"fuse.weights must not all be 0 (that erases every voxel), got {list(weights)}")
