@@ -149,16 +149,16 @@ def test_valid_settings_still_load():
     assert config_from_dict(config_to_dict(cfg)) == cfg
 
 
-@pytest.mark.parametrize("name, text", [
-    ("deep.json", '{"a":' * 100_000 + "1" + "}" * 100_000),
-    ("deep.toml", "a = " + "[" * 100_000 + "]" * 100_000),
-    ("latin1.toml", "# caf\xe9\n"),
+@pytest.mark.parametrize("name, text, message", [
+    ("deep.json", '{"a":' * 100_000 + "1" + "}" * 100_000, "not valid JSON"),
+    ("deep.toml", "a = " + "[" * 100_000 + "]" * 100_000, "not valid TOML"),
+    ("latin1.toml", "# caf\xe9\n", "not UTF-8 text (byte 5)"),
 ], ids=["json", "toml", "not-utf8"])
-def test_unreadable_config_is_one_line_error(tmp_path, capsys, name, text):
+def test_unreadable_config_is_one_line_error(tmp_path, capsys, name, text, message):
     path = tmp_path / name
     path.write_bytes(text.encode("latin-1"))
     assert main(["dump-config", "--config", str(path)]) == 1
-    assert f"{path}: not valid" in one_line_error(capsys, "dump-config")
+    assert f"{path}: {message}" in one_line_error(capsys, "dump-config")
 
 
 def test_config_with_byte_order_mark_loads(tmp_path):

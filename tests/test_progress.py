@@ -56,6 +56,6 @@ def test_cli_bar_only_on_a_terminal(tmp_path, monkeypatch, capsys):
     assert _export(tmp_path, "--force") == 0
     assert "export: 100%" in err.getvalue() and "2/2" in err.getvalue()
     err.seek(0), err.truncate()
-    assert _export(tmp_path, "--quiet") == 0
+    assert _export(tmp_path, "--quiet", "--force") == 0
     assert err.getvalue() == ""
     assert np.isfinite(om.load(tmp_path / "room.bt").resolution)
