@@ -22,6 +22,8 @@ from ._common import CliError
 
 # Subcommand modules, in the order ``--help`` lists them.
 _COMMANDS = ["merge", "batch", "demo", "info", "convert", "build", "export", "dump_config"]
+# --- many
+_COMMANDS.insert(1, "merge_many")
 
 
 def build_parser() -> argparse.ArgumentParser:

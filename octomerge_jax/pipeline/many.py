@@ -196,7 +196,7 @@ def _report(maps, edges, sol, transforms, T_trues, T0_guess, cfg, timings, reg_t
     edge_reports = []
     for e, ed in enumerate(edges):
         why = ed["why"] or ("" if kept[e] else sol.why[e])
-        measured = ed["T"] is not None
+        measured = ed["T"] is not None and transforms[ed["i"]] is not None and transforms[ed["j"]] is not None
         edge_reports.append(EdgeReport(
             i=ed["i"], j=ed["j"], kind=ed["kind"], T_i_j=ed["T"], confidence=ed["conf"], information=ed["info"],
             residual=sol.residual[e] if measured else None, chi2=float(sol.chi2[e]) if measured else None,
@@ -235,7 +235,7 @@ def _report(maps, edges, sol, transforms, T_trues, T0_guess, cfg, timings, reg_t
             points_1=None if placing is None else placing.points_1,
             points_2=None if placing is None else placing.points_2))
     reg_edges = [e for e in edge_reports if e.kind != "prior"]
-    figures = {"maps_placed": int(sum(t is not None for t in transforms)), "pairs_screened": n * (n - 1) // 2,
+    figures = {"maps_placed": int(sum(t is not None for t in transforms)), "pairs_possible": n * (n - 1) // 2,
                "pairs_registered": sum(e.kind == "registration" for e in edge_reports),
                "edges_kept": sum(e.kept for e in reg_edges), "edges_rejected": sum(not e.kept for e in reg_edges),
                "candidate_pairs": [list(c) for c in cand], "solver_iterations": sol.num_iterations,

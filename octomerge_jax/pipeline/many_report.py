@@ -31,7 +31,8 @@ class EdgeReport:
     - ``confidence``: in [0, 1] (``None`` for priors and failures).
     - ``information``: ``(6, 6)`` float64 (v [1/m^2], omega [1/rad^2]) or ``None``.
     - ``residual``: ``(6,)`` float64 ``log(Z^-1 T_0_i^-1 T_0_j)`` after the solve (v [m],
-      omega [rad]); ``chi2``: its squared Mahalanobis norm; ``None`` when not measured.
+      omega [rad]); ``chi2``: its squared Mahalanobis norm; ``None`` when not measured or a map
+      of the edge is unplaced.
     - ``kept``: used in the final solve; ``why``: ``""`` when kept, else why not
       (``"cycle"``, ``"residual"``, ``"low_confidence"``, ``"registration: <error>"``).
     - ``figures``: the registration's figures (``MergeReport.icp``'s keys), ``seconds``.
@@ -80,8 +81,8 @@ class ManyReport:
     - ``transforms``: per map ``T_0_k`` ``(4, 4)`` float64 (map k's frame into map 0's [m];
       identity for map 0) or ``None`` for a map left unplaced.
     - ``maps``: ``MapReport`` per map; ``edges``: ``EdgeReport`` per edge.
-    - ``figures``: global figures (maps placed, pairs screened / registered / kept /
-      rejected, solver iterations, rounds and cost, leaves merged, fuse counts).
+    - ``figures``: global figures (maps placed, pairs possible, the candidate pairs, pairs
+      registered / kept / rejected, solver iterations, rounds and cost, leaves merged, fuse counts).
     - ``timings``: seconds per stage (``screen``, ``register``, ``solve``, ``transform``,
       ``fuse``, ``total``); ``resolution`` [m]; ``warnings``.
     - ``merge_reports``: one ``MergeReport`` per map 1..n-1 (its ``T_1_2`` is ``T_0_k``, its
@@ -141,7 +142,7 @@ class ManyReport:
         """A few human-readable lines (what the CLI prints)."""
         f = self.figures
         lines = [f"maps placed: {f['maps_placed']} of {len(self.maps)}; pairs registered {f['pairs_registered']} "
-                 f"of {f['pairs_screened']} screened, kept {f['edges_kept']}, rejected {f['edges_rejected']}"]
+                 f"of {f['pairs_possible']} possible, kept {f['edges_kept']}, rejected {f['edges_rejected']}"]
         for m in self.maps:
             if m.status == "unplaced":
                 lines.append(f"map {m.index}: unplaced (no kept measurement connects it to map 0)")

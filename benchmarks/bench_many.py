@@ -1,0 +1,78 @@
+"""merge_many on a team of N robots (tiles of a simulated scene, random frames): time per
+stage and accuracy per map, against the same pairwise registrations chained along a
+maximum-confidence spanning tree (map_merge_3d's way) in the same run.
+
+    timeout 900 python benchmarks/bench_many.py --scene office --sizes 4 8 16 --resolution 0.2
+
+Prints one row per N: seconds for the pre-screen, the pairwise registrations, the graph solve,
+transform + fuse; pairs registered; maps placed; the worst rotation [rad] and translation [m]
+error of a placed map with the graph and with the spanning tree. ``--budget-s`` stops before a
+size whose registrations would not fit (estimated from the previous size's seconds per pair).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from octomerge_jax import merge_many, rotation_error, translation_error
+from octomerge_jax.registration.posegraph import spanning_tree_poses
+from octomerge_jax.sim import team_maps
+
+
+def _worst(T_est, T_true):
+    errs = [(rotation_error(T, Tt), translation_error(T, Tt)) for T, Tt in zip(T_est, T_true) if T is not None]
+    if not errs:
+        return float("nan"), float("nan")
+    r, t = np.array(errs, np.float64).T
+    return float(r.max()), float(t.max())
+
+
+def run(scene: str, n: int, resolution: float, seed: int, overlap_m: float) -> dict:
+    team = team_maps(scene, n, resolution, seed=seed, overlap_m=overlap_m)
+    t0 = time.perf_counter()
+    _, rep = merge_many(list(team.maps), T_trues=list(team.T_0_k[1:]))
+    wall = time.perf_counter() - t0
+    reg = [e for e in rep.edges if e.kind == "registration" and e.T_i_j is not None]
+    T_tree, placed, _ = spanning_tree_poses(n, [e.i for e in reg], [e.j for e in reg],
+                                            np.stack([e.T_i_j for e in reg]) if reg else np.zeros((0, 4, 4)),
+                                            [e.confidence for e in reg], np.ones(len(reg), bool))
+    tree = [T_tree[k] if placed[k] else None for k in range(n)]
+    tm = rep.timings
+    return dict(n=n, screen=tm["screen"], register=tm["register"], solve=tm["solve"],
+                fuse=tm["transform"] + tm["fuse"], wall=wall, pairs=rep.figures["pairs_registered"],
+                kept=rep.figures["edges_kept"], placed=rep.figures["maps_placed"], placed_tree=int(placed.sum()),
+                graph=_worst(rep.transforms, team.T_0_k), tree=_worst(tree, team.T_0_k))
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", default="office", choices=("lab", "office", "campus"))
+    ap.add_argument("--sizes", type=int, nargs="+", default=[4, 8, 16])
+    ap.add_argument("--resolution", type=float, default=0.2)
+    ap.add_argument("--overlap", type=float, default=2.0, help="tile growth on each side [m]")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--budget-s", type=float, default=800.0)
+    args = ap.parse_args(argv)
+    print(f"scene {args.scene}, resolution {args.resolution} m, overlap +-{args.overlap} m, seed {args.seed}")
+    print("| N | pre-screen s | pairs | registration s | solve s | transform+fuse s | placed graph / tree | "
+          "kept | worst rot graph / tree [rad] | worst trans graph / tree [m] |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    t_start, per_pair = time.perf_counter(), None
+    for n in args.sizes:
+        if per_pair is not None:
+            guess = per_pair * min(n * (n - 1) / 2, n * 4)
+            if time.perf_counter() - t_start + guess > args.budget_s:
+                print(f"| {n} | skipped: about {guess:.0f} s of registrations would exceed --budget-s |")
+                continue
+        r = run(args.scene, n, args.resolution, args.seed, args.overlap)
+        per_pair = r["register"] / max(r["pairs"], 1)
+        print(f"| {n} | {r['screen']:.2f} | {r['pairs']} | {r['register']:.1f} | {r['solve']:.2f} | {r['fuse']:.1f} | "
+              f"{r['placed']} / {r['placed_tree']} | {r['kept']} | {r['graph'][0]:.4f} / {r['tree'][0]:.4f} | "
+              f"{r['graph'][1]:.3f} / {r['tree'][1]:.3f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
