@@ -17,13 +17,14 @@ import time
 
 import numpy as np
 
-from octomerge_jax import merge_many, rotation_error, translation_error
+from octomerge_jax import merge_many
+from octomerge_jax.registration import rotation_angle_error, translation_distance
 from octomerge_jax.registration.posegraph import spanning_tree_poses
 from octomerge_jax.sim import team_maps
 
 
 def _worst(T_est, T_true):
-    errs = [(rotation_error(T, Tt), translation_error(T, Tt)) for T, Tt in zip(T_est, T_true) if T is not None]
+    errs = [(rotation_angle_error(T, Tt), translation_distance(T, Tt)) for T, Tt in zip(T_est, T_true) if T is not None]
     if not errs:
         return float("nan"), float("nan")
     r, t = np.array(errs, np.float64).T

@@ -38,7 +38,8 @@ def register(subparsers) -> None:
                     "over SE(3) and fuse all maps in MAP1's frame.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out", type=Path, metavar="OUT", help="merged map to write (.bt or .ot), in MAP1's frame")
-    p.add_argument("maps", type=Path, nargs="+", metavar="MAP", help="two or more maps (.bt/.ot); the first is the reference")
+    p.add_argument("maps", type=Path, nargs="+", metavar="MAP",
+                   help="two or more maps (.bt/.ot); the first is the reference")
     a = p.add_argument_group("pipeline")
     a.add_argument("--pairs-per-map", type=int, default=4, metavar="K",
                    help="from 7 maps on, register each map with its K most similar maps (default 4; 0: all pairs)")

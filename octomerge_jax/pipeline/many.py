@@ -203,7 +203,8 @@ def _report(maps, edges, sol, transforms, T_trues, T0_guess, cfg, timings, reg_t
             kept=bool(kept[e]), why=why, figures=ed["figures"], seconds=ed["seconds"]))
     map_reports, merge_reports = [], []
     for k in range(n):
-        touching = tuple(e for e in range(m) if kept[e] and edges[e]["kind"] != "prior" and k in (edges[e]["i"], edges[e]["j"]))
+        touching = tuple(e for e in range(m)
+                         if kept[e] and edges[e]["kind"] != "prior" and k in (edges[e]["i"], edges[e]["j"]))
         placed = transforms[k] is not None
         cov = sol.covariance[k] if placed and k else None
         s_m, s_r = _sigmas(cov)

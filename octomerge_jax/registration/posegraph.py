@@ -363,8 +363,8 @@ def solve_robust(n: int, i, j, T_i_j, information, *, score=None, usable=None, p
         free[0] = False
         graph = make_graph(i, j, Z, info * kept[:, None, None], robust=~prior)
         graph = graph._replace(active=graph.active & jnp.asarray(np.pad(kept, (0, graph.i.shape[0] - m))))
-        sol = solve_pose_graph(T0, graph, jnp.asarray(free), kernel_scale, max_iterations=max_iterations,
-                               kernel=kernel)
+        sol = solve_pose_graph(T0.astype(np.float32), graph, jnp.asarray(free), kernel_scale,
+                               max_iterations=max_iterations, kernel=kernel)
         chi2_all = _host_chi2(np.asarray(sol.T_0_k, np.float64)[:n], i, j, Z, info)[0]
         worst = np.flatnonzero(meas & (chi2_all > max_chi2) & placed[i] & placed[j])
         if len(worst) == 0 or rounds >= max_rounds:
