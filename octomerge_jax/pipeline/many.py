@@ -12,8 +12,8 @@ Guesses (``T_inits``: ``T_0_k``; ``pairs``: ``T_i_k``) narrow the search: only p
 bounding boxes overlap under the guesses are registered, each from its guess with the
 configured ``refine`` mode, and every guess enters the graph as a weak prior. With
 ``refine="none"`` the guesses are the measurements. A map that no kept measurement connects
-to map 0 is reported unplaced and left out, not forced in (``docs/design.md``, "Pose graph over
-pairwise registrations").
+to map 0 is reported unplaced and left out, not forced in
+(``docs/design.md``, "Pose graph over pairwise registrations").
 """
 
 from __future__ import annotations

@@ -47,8 +47,8 @@ def alignment_information(points_i, points_j, T_i_j, distance_m: float, sigma_m:
     (the first and second moments of the inliers). Dividing by ``n sigma_m^2`` counts the
     points as one (their errors are correlated: voxel-lattice bias dominates independent noise)
     with the registration's rmse ``sigma_m`` as its scale; the Hessian keeps the shape: which
-    directions the overlap constrains (``docs/design.md``, "Pose graph over pairwise
-    registrations"). Zero without inliers."""
+    directions the overlap constrains; ``docs/design.md``, "Pose graph over pairwise registrations").
+    Zero without inliers."""
     _, q = select_overlap(np.asarray(points_i, np.float32), np.asarray(points_j, np.float32),
                           np.asarray(T_i_j, np.float64), "voxel", float(distance_m))
     n = int(q.shape[0])

@@ -16,8 +16,8 @@ measurement whose residual after the solve exceeds ``max_chi2`` until none does.
 marginal covariance of every pose is the inverse of the final Gauss-Newton Hessian.
 References: Grisetti et al., "A tutorial on graph-based SLAM" (2010); Yang et al., "Graduated
 non-convexity for robust spatial perception" (2020) for the kernels; map_merge_3d and
-Kimera-Multi for pairwise measurements plus outlier rejection (``docs/design.md``, "Pose graph
-over pairwise registrations").
+Kimera-Multi for pairwise measurements plus outlier rejection
+(``docs/design.md``, "Pose graph over pairwise registrations").
 """
 
 from __future__ import annotations
