@@ -17,7 +17,8 @@ from .timings import Timings
 from .trace import icp_trace
 
 __all__ = [
-    "BatchConfig", "BatchResult", "EdgeReport", "ManyReport", "MapReport", "COARSE_MATCHING_CHOICES", "DEMO_SCENES", "DemoConfig", "FuseConfig",
+    "BatchConfig", "BatchResult", "COARSE_MATCHING_CHOICES", "DEMO_SCENES", "DemoConfig", "EdgeReport", "FuseConfig",
+    "ManyReport", "MapReport",
     "HYPOTHESES_CHOICES", "MergeConfig", "MergeError", "MergeReport", "ON_NOT_CONVERGED_CHOICES",
     "OVERLAP_CHOICES", "REFINE_CHOICES", "Registration", "RegistrationConfig", "Timings", "TransformConfig",
     "VOXEL_OVERLAP_VOXELS", "check_resolutions", "config_from_dict", "config_to_dict", "dumps_toml", "icp_trace",

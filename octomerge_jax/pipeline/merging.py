@@ -19,7 +19,6 @@ step is ``refine.py``; ICP's result is judged there (``accept_icp``) by
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from typing import Sequence
@@ -39,8 +38,8 @@ from .refine import register
 from .report import MergeError, MergeReport, Registration
 from .timings import Timings
 
-__all__ = ["check_resolutions", "check_transform", "config_with_overrides", "merge", "pair_report", "resample_to_resolution", "transform_from_xyz_rpy",
-           "transform_to_frame_1"]
+__all__ = ["check_resolutions", "check_transform", "config_with_overrides", "merge", "pair_report",
+           "resample_to_resolution", "transform_from_xyz_rpy", "transform_to_frame_1"]
 
 
 def transform_from_xyz_rpy(x: float = 0.0, y: float = 0.0, z: float = 0.0, roll_rad: float = 0.0,
