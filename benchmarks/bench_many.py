@@ -3,10 +3,14 @@ stage and accuracy per map, against the same pairwise registrations chained alon
 maximum-confidence spanning tree (map_merge_3d's way) in the same run.
 
     timeout 900 python benchmarks/bench_many.py --scene office --sizes 4 8 16 --resolution 0.2
+    timeout 900 python benchmarks/bench_many.py --guess-noise 0.3 0.1   # rough guesses: ICP per pair
 
 Prints one row per N: seconds for the pre-screen, the pairwise registrations, the graph solve,
 transform + fuse; pairs registered; maps placed; the worst rotation [rad] and translation [m]
-error of a placed map with the graph and with the spanning tree. ``--budget-s`` stops before a
+error of a placed map with the graph and with the spanning tree. Without ``--guess-noise`` every
+pair is registered guess-free (``refine="multi"``); with it the robots have guesses ``T_0_k``
+off by up to that many metres / radians (uniform in x, y, yaw), so only pairs that overlap under
+the guesses are registered, with ICP from them. ``--budget-s`` stops before a
 size whose registrations would not fit (estimated from the previous size's seconds per pair).
 """
 
@@ -17,7 +21,7 @@ import time
 
 import numpy as np
 
-from octomerge_jax import merge_many
+from octomerge_jax import merge_many, se3
 from octomerge_jax.registration import rotation_angle_error, translation_distance
 from octomerge_jax.registration.posegraph import spanning_tree_poses
 from octomerge_jax.sim import team_maps
@@ -31,10 +35,16 @@ def _worst(T_est, T_true):
     return float(r.max()), float(t.max())
 
 
-def run(scene: str, n: int, resolution: float, seed: int, overlap_m: float) -> dict:
+def run(scene: str, n: int, resolution: float, seed: int, overlap_m: float, guess_noise=None) -> dict:
     team = team_maps(scene, n, resolution, seed=seed, overlap_m=overlap_m)
+    guesses = None
+    if guess_noise is not None:
+        rng = np.random.default_rng(seed + 1)
+        t, r = guess_noise
+        guesses = [T @ se3.from_xyz_rpy(*rng.uniform(-t, t, 2), 0.0, 0.0, 0.0, rng.uniform(-r, r), xp=np)
+                   for T in team.T_0_k[1:]]
     t0 = time.perf_counter()
-    _, rep = merge_many(list(team.maps), T_trues=list(team.T_0_k[1:]))
+    _, rep = merge_many(list(team.maps), guesses, T_trues=list(team.T_0_k[1:]))
     wall = time.perf_counter() - t0
     reg = [e for e in rep.edges if e.kind == "registration" and e.T_i_j is not None]
     T_tree, placed, _ = spanning_tree_poses(n, [e.i for e in reg], [e.j for e in reg],
@@ -55,9 +65,14 @@ def main(argv=None) -> None:
     ap.add_argument("--resolution", type=float, default=0.2)
     ap.add_argument("--overlap", type=float, default=2.0, help="tile growth on each side [m]")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--guess-noise", type=float, nargs=2, metavar=("M", "RAD"),
+                    help="give the robots guesses this far off (default: no guesses, guess-free registration)")
     ap.add_argument("--budget-s", type=float, default=800.0)
     args = ap.parse_args(argv)
-    print(f"scene {args.scene}, resolution {args.resolution} m, overlap +-{args.overlap} m, seed {args.seed}")
+    mode = "guess-free"
+    if args.guess_noise is not None:
+        mode = f"guesses off by <= {args.guess_noise[0]} m, {args.guess_noise[1]} rad"
+    print(f"scene {args.scene}, resolution {args.resolution} m, overlap +-{args.overlap} m, seed {args.seed}, {mode}")
     print("| N | pre-screen s | pairs | registration s | solve s | transform+fuse s | placed graph / tree | "
           "kept | worst rot graph / tree [rad] | worst trans graph / tree [m] |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -68,7 +83,7 @@ def main(argv=None) -> None:
             if time.perf_counter() - t_start + guess > args.budget_s:
                 print(f"| {n} | skipped: about {guess:.0f} s of registrations would exceed --budget-s |")
                 continue
-        r = run(args.scene, n, args.resolution, args.seed, args.overlap)
+        r = run(args.scene, n, args.resolution, args.seed, args.overlap, args.guess_noise)
         per_pair = r["register"] / max(r["pairs"], 1)
         print(f"| {n} | {r['screen']:.2f} | {r['pairs']} | {r['register']:.1f} | {r['solve']:.2f} | {r['fuse']:.1f} | "
               f"{r['placed']} / {r['placed_tree']} | {r['kept']} | {r['graph'][0]:.4f} / {r['tree'][0]:.4f} | "
