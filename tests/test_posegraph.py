@@ -125,10 +125,11 @@ def test_isolated_node_is_unplaced_and_covariance_grows_along_a_chain():
     sd = [np.sqrt(np.trace(c[:3, :3])) for c in r.covariance[1:4]]
     assert sd[0] < sd[1] < sd[2], sd  # uncertainty accumulates away from map 0
     # a measurement-free prior (a user's guess) does not place node 4
-    Zp = np.concatenate([Z, T[None, 4]])
-    rp = solve_robust(5, np.r_[i, 0], np.r_[j, 4], Zp, np.broadcast_to(INFO, (4, 6, 6)),
+    Zp = np.concatenate([Z, (np.linalg.inv(T[2]) @ T[4])[None]])
+    rp = solve_robust(5, np.r_[i, 2], np.r_[j, 4], Zp, np.broadcast_to(INFO, (4, 6, 6)),
                       prior=np.r_[False, False, False, True])
     assert not rp.placed[4] and rp.kept[3]
+    np.testing.assert_allclose(rp.T_0_k, r.T_0_k, atol=1e-9)  # and pulls on no placed map
 
 
 def test_prior_pulls_a_weak_direction_and_cycle_chi2_is_frame_invariant():

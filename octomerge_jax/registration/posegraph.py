@@ -361,8 +361,9 @@ def solve_robust(n: int, i, j, T_i_j, information, *, score=None, usable=None, p
         free = np.zeros(n_cap, bool)
         free[:n] = placed
         free[0] = False
-        graph = make_graph(i, j, Z, info * kept[:, None, None], robust=~prior)
-        graph = graph._replace(active=graph.active & jnp.asarray(np.pad(kept, (0, graph.i.shape[0] - m))))
+        active = kept & placed[i] & placed[j]  # a prior to an unplaced map would pull towards nothing
+        graph = make_graph(i, j, Z, info * active[:, None, None], robust=~prior)
+        graph = graph._replace(active=graph.active & jnp.asarray(np.pad(active, (0, graph.i.shape[0] - m))))
         sol = solve_pose_graph(T0.astype(np.float32), graph, jnp.asarray(free), kernel_scale,
                                max_iterations=max_iterations, kernel=kernel)
         chi2_all = _host_chi2(np.asarray(sol.T_0_k, np.float64)[:n], i, j, Z, info)[0]
