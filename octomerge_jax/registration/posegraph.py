@@ -12,7 +12,9 @@ equations, jitted over padded arrays: one compiled program per (node, edge) capa
 On the host around it (``solve_robust``): a cycle-consistency check over every triangle of
 the graph (a measurement that closes no consistent triangle and at least one inconsistent one
 is rejected), a max-confidence spanning tree for the initial poses, then solves that drop any
-measurement whose residual after the solve exceeds ``max_chi2`` until none does. The
+measurement whose residual after the solve exceeds ``max_chi2`` until none does; measurements
+the cycle check rejected that agree with that solution are taken back and the graph solved
+again (once). The
 marginal covariance of every pose is the inverse of the final Gauss-Newton Hessian.
 References: Grisetti et al., "A tutorial on graph-based SLAM" (2010); Yang et al., "Graduated
 non-convexity for robust spatial perception" (2020) for the kernels; map_merge_3d and
@@ -322,7 +324,7 @@ def solve_robust(n: int, i, j, T_i_j, information, *, score=None, usable=None, p
         rejected, and they do not make a node placed.
       kernel, kernel_scale, max_iterations: ``solve_pose_graph``'s.
       max_chi2, cycle_max_chi2: rejection thresholds on an edge's / a triangle's chi2.
-      max_rounds: solves at most (each drops the edges above ``max_chi2``).
+      max_rounds: solves at most (each drops the edge with the largest chi2 above ``max_chi2``).
 
     Returns a ``RobustResult``. Raises ``ValueError`` for ``n < 1`` or an unknown kernel.
     """
@@ -352,7 +354,7 @@ def solve_robust(n: int, i, j, T_i_j, information, *, score=None, usable=None, p
         for e in np.flatnonzero(meas & (bad > 0) & (good == 0)):
             why[e], meas[e] = "cycle", False
     n_cap = bucket_capacity(n, 8)
-    rounds, sol = 0, None
+    rounds, sol, readmitted = 0, None, False
     while True:
         rounds += 1
         kept = meas | (prior & usable)
@@ -368,8 +370,18 @@ def solve_robust(n: int, i, j, T_i_j, information, *, score=None, usable=None, p
                                max_iterations=max_iterations, kernel=kernel)
         chi2_all = _host_chi2(np.asarray(sol.T_0_k, np.float64)[:n], i, j, Z, info)[0]
         worst = np.flatnonzero(meas & (chi2_all > max_chi2) & placed[i] & placed[j])
-        if len(worst) == 0 or rounds >= max_rounds:
+        if rounds >= max_rounds:
             break
+        if len(worst) == 0:
+            # a triangle with one wrong edge condemns its other edges too when they close no other
+            # triangle: those that agree with the solution of the rest are taken back, once
+            back = np.array([w == "cycle" for w in why]) & placed[i] & placed[j] & (chi2_all <= max_chi2)
+            if readmitted or not back.any():
+                break
+            readmitted = True
+            meas |= back
+            why = ["" if b else w for b, w in zip(back, why)]
+            continue
         e = worst[np.argmax(chi2_all[worst])]  # one at a time: the worst may have pulled the others
         why[e], meas[e] = "residual", False
     T = np.asarray(sol.T_0_k, np.float64)[:n]
