@@ -232,7 +232,7 @@ def plot_pose_graph(maps, report, path=None, *, max_points: int = 4000, title: s
         p = _apply(T, _occupied(m, max_points)[0])
         if len(p) == 0:
             continue
-        ax.scatter(p[:, 0], p[:, 1], s=0.5, color=colours[k], alpha=0.35, linewidths=0)
+        ax.scatter(p[:, 0], p[:, 1], s=3, color=colours[k], alpha=0.4, linewidths=0)
         centre[k] = p[:, :2].mean(0)
     for e in report.edges:
         if e.kind == "prior" or e.i not in centre or e.j not in centre:
