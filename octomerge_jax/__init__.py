@@ -13,8 +13,8 @@ from .hostmem import reuse_host_memory
 from .io import MapFormatError, from_bytes, from_message, load, save, to_bytes, to_message_fields
 from .insert import CapacityPlan, insert_point_cloud, insert_point_clouds
 from .map import Leaves, OccupancyMap, OccupancyParams, bucket_capacity, empty, from_leaves
-from .pipeline import (BatchResult, MergeConfig, MergeError, MergeReport, Registration, load_config, merge,
-                       merge_batch, merge_many)
+from .pipeline import (BatchResult, ManyReport, MergeConfig, MergeError, MergeReport, Registration, load_config,
+                       merge, merge_batch, merge_many)
 from .registration import (
     AlignResult,
     align_dense,
@@ -76,6 +76,7 @@ __all__ = [
     "FuseResult",
     "IcpResult",
     "Leaves",
+    "ManyReport",
     "MapFormatError",
     "MergeConfig",
     "MergeError",

@@ -38,6 +38,9 @@ __all__ = [
     "so3_exp",
     "so3_log",
     "se3_exp",
+    "se3_log",
+    "adjoint",
+    "right_jacobian_inverse",
     "check_rigid",
     "project_to_rigid",
     "check_rigid_transform",
@@ -302,3 +305,44 @@ def check_rigid_transform(T, name: str = "T_dst_src") -> np.ndarray:
     A = check_rigid(A, name).copy()
     A[3] = [0.0, 0.0, 0.0, 1.0]
     return A
+
+
+# --- many
+
+
+def se3_log(T, *, xp=jnp):
+    """se(3) logarithm: ``T (..., 4, 4)`` -> ``xi (..., 6)`` = (v [m], omega [rad]) with
+    ``se3_exp(xi) = T``, for rotation angles below pi (``so3_log``; ``v = V(omega)^-1 t`` with
+    the closed form ``V^-1 = I - K / 2 + (1 - a / (2 b)) / theta^2 K^2``, a Taylor series
+    below 0.1 rad)."""
+    T = _f(T, xp)
+    w = so3_log(T[..., :3, :3], xp=xp)
+    t2 = xp.sum(w * w, axis=-1)
+    a, b, _ = _exp_coefficients(t2, xp)
+    small = t2 < 1e-2
+    d = xp.where(small, 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
+                 (1.0 - a / (2.0 * xp.where(small, 1.0, b))) / xp.where(small, 1.0, t2))
+    K = skew(w, xp=xp)
+    Vinv = xp.eye(3, dtype=T.dtype) - 0.5 * K + d[..., None, None] * (K @ K)
+    v = (Vinv @ T[..., :3, 3:])[..., 0]
+    return xp.concatenate([v, w], -1)
+
+
+def adjoint(T, *, xp=jnp):
+    """Adjoint ``Ad_T (..., 6, 6)`` of ``T (..., 4, 4)`` on ``xi = (v, omega)``:
+    ``T exp(xi) T^-1 = exp(Ad_T xi)``; ``[[R, [t]x R], [0, R]]``."""
+    T = _f(T, xp)
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    top = xp.concatenate([R, skew(t, xp=xp) @ R], -1)
+    bottom = xp.concatenate([xp.zeros_like(R), R], -1)
+    return xp.concatenate([top, bottom], -2)
+
+
+def right_jacobian_inverse(xi, *, xp=jnp):
+    """First-order inverse right Jacobian of SE(3) ``(..., 6, 6)`` at ``xi (..., 6)``:
+    ``log(exp(xi) exp(d)) ~ xi + (I + ad(xi) / 2) d`` with ``ad(xi) = [[[w]x, [v]x], [0, [w]x]]``
+    (exact to second order in ``|xi|``; pose-graph residuals are small)."""
+    xi = _f(xi, xp)
+    V, W = skew(xi[..., :3], xp=xp), skew(xi[..., 3:], xp=xp)
+    ad = xp.concatenate([xp.concatenate([W, V], -1), xp.concatenate([xp.zeros_like(W), W], -1)], -2)
+    return xp.eye(6, dtype=xi.dtype) + 0.5 * ad

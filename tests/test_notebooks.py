@@ -15,7 +15,9 @@ NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 # test_registration_icp / _overlap, dense alignment and its gradients in test_dense
 @pytest.mark.parametrize("name", ["01_merge_two_maps.ipynb",
                                   pytest.param("02_thesis_tables.ipynb", marks=pytest.mark.slow),
-                                  pytest.param("03_gradient_transform_tuning.ipynb", marks=pytest.mark.slow)])
+                                  pytest.param("03_gradient_transform_tuning.ipynb", marks=pytest.mark.slow),
+                                  # 04 registers every overlapping pair of four robots' maps (ICP): minutes
+                                  pytest.param("04_many_robots.ipynb", marks=pytest.mark.slow)])
 def test_notebook_runs(name):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
@@ -32,6 +34,8 @@ def test_notebook_runs(name):
               if "image/png" in o.get("data", {})]
     if name.startswith("01"):
         assert len(images) >= 3  # overlap, merged map, ICP convergence figures
+    if name.startswith("04"):
+        assert len(images) >= 2  # the pose graph over the footprints, the merged map
 
 
 def _committed():

@@ -182,8 +182,10 @@ def test_not_converged_policy():
 def test_merge_many_refine_none_equals_fold():
     m1, m2, T = small_pair()
     merged, reps = merge_many([m1, m2], [T], refine="none")
-    assert len(reps) == 1 and reps[0].icp is None
-    assert tree.equal(merged, fuse(m1, transform_map(m2, T)))  # fuse_many of 2 == fuse
+    assert len(reps) == 1 and reps[0].icp is None  # the report also reads as the per-map list
+    np.testing.assert_allclose(reps.transforms[1], T, atol=1e-9)  # the guess is the measurement
+    assert [e.kind for e in reps.edges] == ["guess"] and reps.edges[0].kept
+    assert tree.equal(merged, fuse(m1, transform_map(m2, reps.transforms[1])))  # fuse_many of 2 == fuse
     with pytest.raises(ValueError, match="T_inits has 2 transforms for 2 maps"):
         merge_many([m1, m2], [T, T])
 
@@ -224,8 +226,39 @@ def test_merge_many_star_and_chain():
                                   T_trues=[T, T_1_3])
     assert reps_c[1].epsilon_r < 0.15 and reps_c[1].epsilon_t < 0.3
     assert abs(merged_c.num_leaves - merged.num_leaves) < 0.05 * merged.num_leaves
-    with pytest.raises(ValueError, match="parent"):
-        merge_many([m1, m2, m3], pairs={(0, 1): T, (0, 2): T, (1, 2): T})
+    # pairs need not form a tree now: a loop of guesses enters the graph as priors
+    _, rep_loop = merge_many([m1, m2, m3], pairs={(0, 1): perturbed(), (1, 2): T_2_3_guess, (0, 2): guess_3})
+    assert rep_loop.figures["maps_placed"] == 3
+    with pytest.raises(ValueError, match="not a pair"):
+        merge_many([m1, m2, m3], pairs={(0, 1): T, (0, 3): T})
+
+
+def test_merge_many_graph_from_guesses_and_an_unplaced_map(tmp_path):
+    """Three robots of the room registered pairwise from rough guesses (ICP, the buckets of
+    ``merged_icp``), solved as a pose graph; a fourth map whose guess puts it 50 m away overlaps
+    nothing and is reported unplaced, not forced in."""
+    m1, m2, T = small_pair()
+    T_1_3 = transform_from_xyz_rpy(0.5, 0.2, 0.0, 0.0, 0.0, -0.3)
+    m3 = robot_map((0.5, 3.5), T_world_map=T_1_3)
+    far = transform_from_xyz_rpy(50.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    guesses = [perturbed(), transform_from_xyz_rpy(0.6, 0.1, 0.0, 0.0, 0.0, -0.2), far]
+    merged, rep = merge_many([m1, m2, m3, m1], guesses, T_trues=[T, T_1_3, far])
+    assert [m.status for m in rep.maps] == ["root", "placed", "placed", "unplaced"]
+    assert rep.transforms[3] is None and rep.maps[3].covariance is None and rep.warnings
+    # the pairs that overlap under the guesses, and the guessed pair (0, 3), which finds no overlap
+    regs = {(e.i, e.j): e for e in rep.edges if e.kind == "registration"}
+    assert sorted(regs) == [(0, 1), (0, 2), (0, 3), (1, 2)]
+    assert all(regs[p].kept and regs[p].chi2 < 22.46 for p in [(0, 1), (0, 2), (1, 2)])
+    assert not regs[(0, 3)].kept and regs[(0, 3)].why.startswith("registration: no_overlap")
+    for m in rep.maps[1:3]:
+        assert m.epsilon_r < 0.15 and m.epsilon_t < 0.2, (m.epsilon_r, m.epsilon_t)
+        assert 0 < m.sigma_m < 1 and len(m.edges) == 2
+    assert len(rep) == 3 and rep[0].epsilon_r < rep[0].epsilon_r_init  # the per-map list view
+    d = json.loads(rep.to_json(tmp_path / "r.json"))
+    assert d["transforms"][3] is None and d["maps"][3]["status"] == "unplaced" and len(d["edges"]) == 7
+    lines = rep.write_tum(tmp_path / "p.tum").splitlines()
+    assert len(lines) == 3 and lines[0].split() == ["0.000000"] + ["0.000000000"] * 6 + ["1.000000000"]
+    assert merged.num_leaves > m1.num_leaves
 
 
 def test_icp_trace_matches_icp(merged_icp):

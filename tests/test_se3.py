@@ -25,7 +25,7 @@ def test_numpy_and_jax_paths_agree(batch):
     xi = RNG.normal(size=batch + (6,))
     with jax.enable_x64(True):
         for f, args in [(se3.to_xyz_rpy, (T,)), (se3.to_quaternion, (T,)), (se3.inverse, (T,)),
-                        (se3.so3_log, (T[..., :3, :3],)), (se3.se3_exp, (xi,)), (se3.so3_exp, (xi[..., 3:],)),
+                        (se3.so3_log, (T[..., :3, :3],)), (se3.se3_exp, (xi,)), (se3.se3_log, (T,)), (se3.so3_exp, (xi[..., 3:],)),
                         (se3.skew, (xi[..., :3],)), (se3.compose, (T, se3.inverse(T, xp=np)))]:
             np.testing.assert_allclose(np.asarray(f(*[jnp.asarray(a) for a in args])), f(*args, xp=np),
                                        atol=1e-12, err_msg=f.__name__)
@@ -76,6 +76,7 @@ _FUNCTIONS = {
     "so3_exp": (se3.so3_exp, 3),
     "so3_log": (lambda x: se3.so3_log(se3.so3_exp(x)), 3),
     "se3_exp": (se3.se3_exp, 6),
+    "se3_log": (lambda x: se3.se3_log(se3.se3_exp(x)), 6),
 }
 
 
@@ -92,7 +93,7 @@ def test_jacobians_forward_reverse_and_finite_differences(name, batch):
         check_grads(f, (jnp.asarray(x, jnp.float64),), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
 
 
-@pytest.mark.parametrize("name", ["so3_exp", "se3_exp", "so3_log"])
+@pytest.mark.parametrize("name", ["so3_exp", "se3_exp", "so3_log", "se3_log"])
 def test_gradients_finite_at_zero(name):
     f, dim = _FUNCTIONS[name]
     with jax.enable_x64(True):
@@ -115,3 +116,11 @@ def test_project_to_rigid_and_check_rigid():
     np.testing.assert_allclose(fixed[:3, :3], T[:3, :3], atol=5e-3)
     np.testing.assert_array_equal(fixed[3], [0, 0, 0, 1])
     np.testing.assert_array_equal(fixed[:3, 3], noisy[:3, 3])
+
+
+@pytest.mark.parametrize("batch", BATCHES)
+def test_se3_log_inverts_se3_exp(batch):
+    xi = RNG.normal(size=batch + (6,))
+    xi[..., 3:] *= RNG.uniform(0.0, 3.0, batch + (1,)) / np.linalg.norm(xi[..., 3:], axis=-1, keepdims=True)
+    np.testing.assert_allclose(se3.se3_log(se3.se3_exp(xi, xp=np), xp=np), xi, atol=1e-9)
+    np.testing.assert_allclose(se3.se3_log(np.eye(4), xp=np), np.zeros(6), atol=1e-15)

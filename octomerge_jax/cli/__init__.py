@@ -21,7 +21,7 @@ from ..hostmem import reuse_host_memory
 from ._common import CliError
 
 # Subcommand modules, in the order ``--help`` lists them.
-_COMMANDS = ["merge", "batch", "demo", "info", "convert", "build", "export", "dump_config", "view"]
+_COMMANDS = ["merge", "merge_many", "batch", "demo", "info", "convert", "build", "export", "dump_config", "view"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -18,7 +18,7 @@ import numpy as np
 from .._fileutil import atomic_output
 from ..map import probability
 
-__all__ = ["plot_overlap", "plot_map", "plot_merge_comparison", "plot_icp_convergence", "save_figure"]
+__all__ = ["plot_overlap", "plot_map", "plot_merge_comparison", "plot_icp_convergence", "plot_pose_graph", "save_figure"]
 
 MAP1_COLOR = "#d62728"  # thesis: first map red
 MAP2_COLOR = "#2ca02c"  # second map green
@@ -243,6 +243,50 @@ def plot_icp_convergence(trace: dict, path=None, *, title: str | None = None):
         bx.legend(fontsize=8)
     if title:
         fig.suptitle(title)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
+
+
+# --- many
+
+
+def plot_pose_graph(maps, report, path=None, *, max_points: int = 4000, title: str | None = None):
+    """Top view of a team merge (``merge_many``): every placed map's occupied voxels in map 0's
+    frame (one colour per map, at most ``max_points`` each) with its index at its centroid, and
+    the pose graph's measurement edges between the centroids: solid green kept, dashed red
+    rejected (labelled with why). Unplaced maps are named in the title. Saved to ``path`` if
+    given; returns the figure."""
+    fig = _figure((8, 6))
+    ax = fig.add_subplot(1, 1, 1)
+    colours = [f"C{k % 10}" for k in range(len(maps))]
+    centre = {}
+    for k, (m, T) in enumerate(zip(maps, report.transforms)):
+        if T is None:
+            continue
+        p = _apply(T, _occupied(m, max_points)[0])
+        if len(p) == 0:
+            continue
+        ax.scatter(p[:, 0], p[:, 1], s=3, color=colours[k], alpha=0.4, linewidths=0)
+        centre[k] = p[:, :2].mean(0)
+    for e in report.edges:
+        if e.kind == "prior" or e.i not in centre or e.j not in centre:
+            continue
+        (x0, y0), (x1, y1) = centre[e.i], centre[e.j]
+        if e.kept:
+            ax.plot([x0, x1], [y0, y1], "-", color="#2ca02c", lw=2)
+        else:
+            ax.plot([x0, x1], [y0, y1], "--", color="#d62728", lw=1.5)
+            ax.annotate(e.why.split(":")[0], ((x0 + x1) / 2, (y0 + y1) / 2), color="#d62728", fontsize=8)
+    for k, c in centre.items():
+        ax.annotate(str(k), c, fontsize=12, weight="bold", ha="center", va="center",
+                    bbox=dict(boxstyle="circle", fc="white", ec=colours[k]))
+    unplaced = [k for k, T in enumerate(report.transforms) if T is None]
+    ax.set_title((title or "maps in map 0's frame; edges: kept (green), rejected (red)")
+                 + (f"\nunplaced: {unplaced}" if unplaced else ""))
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="datalim")
     if path is not None:
         save_figure(fig, path)
     return fig

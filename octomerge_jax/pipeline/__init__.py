@@ -7,7 +7,9 @@ from .config import (COARSE_MATCHING_CHOICES, DEMO_SCENES, HYPOTHESES_CHOICES, O
                      OVERLAP_CHOICES, REFINE_CHOICES, BatchConfig, DemoConfig, FuseConfig, MergeConfig,
                      RegistrationConfig, TransformConfig, config_from_dict, config_to_dict, dumps_toml, load_config,
                      save_config, validate)
-from .merging import check_resolutions, merge, merge_many, resample_to_resolution, transform_from_xyz_rpy
+from .many import merge_many
+from .many_report import EdgeReport, ManyReport, MapReport
+from .merging import check_resolutions, merge, resample_to_resolution, transform_from_xyz_rpy
 from .ranking import rank_by_map_agreement
 from .refine import register
 from .report import MergeError, MergeReport, Registration
@@ -15,7 +17,8 @@ from .timings import Timings, stage_listener
 from .trace import icp_trace
 
 __all__ = [
-    "BatchConfig", "BatchResult", "COARSE_MATCHING_CHOICES", "DEMO_SCENES", "DemoConfig", "FuseConfig",
+    "BatchConfig", "BatchResult", "COARSE_MATCHING_CHOICES", "DEMO_SCENES", "DemoConfig", "EdgeReport", "FuseConfig",
+    "ManyReport", "MapReport",
     "HYPOTHESES_CHOICES", "MergeConfig", "MergeError", "MergeReport", "ON_NOT_CONVERGED_CHOICES",
     "OVERLAP_CHOICES", "REFINE_CHOICES", "Registration", "RegistrationConfig", "Timings", "TransformConfig",
     "VOXEL_OVERLAP_VOXELS", "check_resolutions", "config_from_dict", "config_to_dict", "dumps_toml", "icp_trace",

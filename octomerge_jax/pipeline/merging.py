@@ -1,4 +1,4 @@
-"""The merge pipeline (thesis Ch. 6): ``merge`` and ``merge_many``.
+"""The merge pipeline (thesis Ch. 6): ``merge`` (N maps: ``many.py``).
 
 ::
 
@@ -19,7 +19,6 @@ step is ``refine.py``; ICP's result is judged there (``accept_icp``) by
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from typing import Sequence
@@ -29,7 +28,7 @@ import numpy as np
 from .. import morton
 from .. import registration as reg
 from .. import se3
-from ..fusion import fuse_many_with_report, fuse_with_report
+from ..fusion import fuse_with_report
 from ..map import OccupancyMap, empty
 from ..resample import sample, transform_map
 from ..se3 import check_rigid_transform
@@ -39,9 +38,8 @@ from .refine import register
 from .report import MergeError, MergeReport, Registration
 from .timings import Timings
 
-__all__ = ["check_resolutions", "check_transform", "config_with_overrides", "merge",
-           "merge_many", "pair_report", "resample_to_resolution", "transform_from_xyz_rpy",
-           "transform_to_frame_1"]
+__all__ = ["check_resolutions", "check_transform", "config_with_overrides", "merge", "pair_report",
+           "resample_to_resolution", "transform_from_xyz_rpy", "transform_to_frame_1"]
 
 
 def transform_from_xyz_rpy(x: float = 0.0, y: float = 0.0, z: float = 0.0, roll_rad: float = 0.0,
@@ -237,106 +235,3 @@ def config_with_overrides(config, refine=None, overlap=None, interpolation=None,
         cfg = cfg.replace(registration=reg_, transform=tr, fuse=fu)
     validate(cfg)
     return cfg
-
-
-def _spanning_tree(n: int, T_inits, pairs) -> tuple[dict, dict, list[int]]:
-    """``merge_many``'s registration plan: ``(parent {k: i}, guess {k: T_i_k or None}, order)``
-    with ``order`` breadth-first from map 0 so that parents are registered first."""
-    if pairs is None:
-        T_inits = [None] * (n - 1) if T_inits is None else list(T_inits)
-        if len(T_inits) != n - 1:
-            raise ValueError(f"T_inits has {len(T_inits)} transforms for {n} maps (need {n - 1})")
-        parent = {k: 0 for k in range(1, n)}
-        guess = {k: T_inits[k - 1] for k in range(1, n)}
-    else:
-        parent, guess = {}, {}
-        for (i, k), T in dict(pairs).items():
-            if k in parent or k == 0:
-                raise ValueError(f"pairs: map {k} has two parents (or is the root); give a tree")
-            parent[k], guess[k] = int(i), T
-        if sorted(parent) != list(range(1, n)):
-            raise ValueError(f"pairs must give every map 1..{n - 1} one parent, got {sorted(parent)}")
-    order, seen = [], {0}
-    while len(order) < n - 1:
-        grew = False
-        for k in range(1, n):
-            if k not in seen and parent[k] in seen:
-                order.append(k)
-                seen.add(k)
-                grew = True
-        if not grew:
-            raise ValueError("pairs do not connect every map to map 0 (cycle or gap)")
-    return parent, guess, order
-
-
-def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine: str | None = None,
-               rule: str | None = None, T_trues=None, config: MergeConfig | None = None):
-    """Merge ``m`` maps into the first map's frame and fuse them all in one pass (``fuse_many``).
-
-    Args:
-      maps: ``[m_0, m_1, ...]`` of one resolution.
-      T_inits: ``m - 1`` guesses ``T_0_k`` (k = 1..m-1) mapping map k into map 0's frame
-        (``None``: identity). Each map k is registered to map 0.
-      pairs: instead of ``T_inits``, pairwise guesses ``{(i, k): T_i_k}`` forming a spanning
-        tree rooted at 0 (e.g. a chain ``(0,1), (1,2)``: robots that met one after another).
-        Map k is registered to its parent i (refined ``T_i_k``), and the refined transforms are
-        chained into ``T_0_k = T_0_i T_i_k``.
-      T_trues: optional ground truths ``T_0_k`` (``m - 1``) for the thesis errors.
-
-    Returns ``(merged, reports)``: one ``MergeReport`` per non-root map (its ``T_1_2`` is
-    ``T_parent_k`` and ``counts["leaves_merged"]`` the final map's), plus the ``fuse_many``
-    counts in ``reports[0].counts["fuse_many"]``. Raises ``ValueError`` for a bad plan,
-    ``MergeError`` as ``merge``.
-    """
-    maps = list(maps)
-    if len(maps) < 2:
-        raise ValueError("merge_many needs at least two maps")
-    cfg = config_with_overrides(config, refine, None, None, rule, None)
-    check_resolutions(maps, [f"maps[{i}]" for i in range(len(maps))], False)
-    n = len(maps)
-    parent, guess, order = _spanning_tree(n, T_inits, pairs)
-    T_trues = [None] * (n - 1) if T_trues is None else list(T_trues)
-    T_0 = {0: np.eye(4)}
-    reports = {}
-    for k in order:
-        timings = Timings()
-        t0 = time.perf_counter()
-        i = parent[k]
-        T_init = np.eye(4) if guess[k] is None else check_transform(guess[k], f"T_{i}_{k}")
-        registration = register(maps[i], maps[k], T_init, cfg, timings)
-        T_0[k] = T_0[i] @ registration.T_1_2
-        timings["total"] = time.perf_counter() - t0
-        eps, disp = (None, None, None, None), (None, None)
-        if T_trues[k - 1] is not None:
-            T_true = check_transform(T_trues[k - 1], f"T_trues[{k - 1}]")
-            eps = (*_epsilons(T_0[i] @ T_init, T_true), *_epsilons(T_0[k], T_true))
-            disp = _displacements(maps[k], T_true, T_0[i] @ T_init, T_0[k])
-        reports[k] = MergeReport(
-            T_1_2_init=T_init, T_1_2=registration.T_1_2, refine=cfg.registration.refine, icp=registration.info,
-            epsilon_r_init=eps[0], epsilon_t_init=eps[1], epsilon_r=eps[2], epsilon_t=eps[3],
-            counts={"leaves_1": maps[i].num_leaves, "leaves_2": maps[k].num_leaves, **registration.counts},
-            timings=dict(timings), resolution=maps[0].resolution, warnings=registration.warnings,
-            status="ok" if registration.converged else "not_converged",
-            displacement_init=disp[0], displacement=disp[1], icp_result=registration.result,
-            points_1=registration.points_1, points_2=registration.points_2)
-    tc = cfg.transform
-    moved = [maps[0]]
-    t_all = Timings()
-    for k in range(1, n):
-        with t_all.stage("transform") as stage:
-            moved.append(stage.ready(transform_map(maps[k], T_0[k], tc.interpolation, space=tc.space,
-                                                   chunk_bricks=tc.chunk_bricks)))
-    weights = list(cfg.fuse.weights) if cfg.fuse.rule == "weighted" else None
-    if weights is not None and len(weights) != n:
-        raise ValueError(f"fuse.weights has {len(weights)} entries for {n} maps")
-    with t_all.stage("fuse") as stage:
-        merged, frep = stage.ready(fuse_many_with_report(moved, cfg.fuse.rule, weights=weights))
-    out = []
-    for k in range(1, n):
-        r = reports[k]
-        counts = {**r.counts, "leaves_merged": merged.num_leaves, "leaves_2_transformed": moved[k].num_leaves}
-        if k == 1:
-            counts["fuse_many"] = frep.host()
-        timings = {**r.timings, "transform_all": t_all["transform"], "fuse_all": t_all["fuse"]}
-        out.append(dataclasses.replace(r, counts=counts, timings=timings))
-    return merged, out

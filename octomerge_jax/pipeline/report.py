@@ -182,3 +182,12 @@ def _jsonable(v):
         f = float(v)
         return f if math.isfinite(f) else None
     return v
+
+
+# --- many
+
+
+def jsonable(v):
+    """``v`` with NumPy / JAX arrays and scalars turned into JSON types (lists, floats; a
+    non-finite float as ``None``), dicts and sequences converted recursively."""
+    return _jsonable(v)

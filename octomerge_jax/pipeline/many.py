@@ -1,0 +1,250 @@
+"""``merge_many``: N maps into one globally consistent map (thesis Ch. 6 for each pair, a pose
+graph over all of them).
+
+::
+
+    maps ──screen_pairs──> candidate pairs        (all pairs, or a coarse-descriptor pre-screen)
+         ──measure_pair──> T_i_j, Omega, confidence per pair   (guess-free, or from the guesses)
+         ──posegraph.solve_robust──> T_0_k, kept / rejected edges, covariances
+         ──transform_map (each placed map)──fuse_many──> merged   (one pass, Alg. 8)
+
+Guesses (``T_inits``: ``T_0_k``; ``pairs``: ``T_i_k``) narrow the search: only pairs whose
+bounding boxes overlap under the guesses are registered, each from its guess with the
+configured ``refine`` mode, and every guess enters the graph as a weak prior. With
+``refine="none"`` the guesses are the measurements. A map that no kept measurement connects
+to map 0 is reported unplaced and left out, not forced in
+(``docs/design.md``, "Pose graph over pairwise registrations").
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Sequence
+
+import numpy as np
+
+from .. import registration as reg
+from ..fusion import fuse_many_with_report
+from ..map import OccupancyMap
+from ..registration import posegraph
+from ..resample import transform_map
+from .config import MergeConfig
+from .many_report import EdgeReport, ManyReport, MapReport
+from .merging import check_resolutions, check_transform, config_with_overrides
+from .pairs import measure_pair, screen_pairs
+from .report import MergeError, MergeReport
+from .timings import Timings
+
+__all__ = ["merge_many"]
+
+_LOW = 1e-9
+
+
+def _guesses(n: int, T_inits, pairs) -> tuple[dict, np.ndarray | None]:
+    """``({(i, k): T_i_k}, T_0_k guesses (n, 4, 4) or None)`` from ``merge_many``'s arguments;
+    raises ``ValueError`` for a bad plan."""
+    if T_inits is not None and pairs is not None:
+        raise ValueError("give T_inits or pairs, not both")
+    if T_inits is not None:
+        T_inits = list(T_inits)
+        if len(T_inits) != n - 1:
+            raise ValueError(f"T_inits has {len(T_inits)} transforms for {n} maps (need {n - 1})")
+        g = {(0, k): np.eye(4) if T is None else check_transform(T, f"T_inits[{k - 1}]")
+             for k, T in enumerate(T_inits, 1)}
+    elif pairs is not None:
+        g = {}
+        for (i, k), T in dict(pairs).items():
+            i, k = int(i), int(k)
+            if not (0 <= i < n and 0 <= k < n) or i == k:
+                raise ValueError(f"pairs: ({i}, {k}) is not a pair of two of the {n} maps")
+            g[(i, k)] = np.eye(4) if T is None else check_transform(T, f"pairs[({i}, {k})]")
+    else:
+        return {}, None
+    keys = list(g)
+    T0, placed, _ = posegraph.spanning_tree_poses(n, [a for a, _ in keys], [b for _, b in keys],
+                                                  np.stack([g[e] for e in keys]), np.ones(len(keys)),
+                                                  np.ones(len(keys), bool))
+    if not placed.all():
+        raise ValueError(f"the guesses do not connect maps {np.flatnonzero(~placed).tolist()} to map 0")
+    return g, T0
+
+
+def _boxes_overlap(m_i: OccupancyMap, m_j: OccupancyMap, T_i_j, margin: float) -> bool:
+    """Whether map j's leaf bounding box, placed by ``T_i_j``, meets map i's (grown by ``margin``)."""
+    def box(m):
+        lv = m.leaves()
+        return lv.centers.min(0), lv.centers.max(0)
+    (lo_i, hi_i), (lo_j, hi_j) = box(m_i), box(m_j)
+    corners = np.array([[x, y, z] for x in (lo_j[0], hi_j[0]) for y in (lo_j[1], hi_j[1]) for z in (lo_j[2], hi_j[2])])
+    c = corners @ np.asarray(T_i_j)[:3, :3].T + np.asarray(T_i_j)[:3, 3]
+    return bool(np.all(c.min(0) <= hi_i + margin) and np.all(c.max(0) >= lo_i - margin))
+
+
+def _sigmas(cov) -> tuple[float | None, float | None]:
+    if cov is None or not np.all(np.isfinite(cov)):
+        return None, None
+    return (float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))),
+            float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))))
+
+
+def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine: str | None = None,
+               rule: str | None = None, T_trues=None, config: MergeConfig | None = None,
+               max_pairs_per_map: int | None = 4, min_confidence: float = 0.1, prior_sigma_m: float = 1.0,
+               prior_sigma_rad: float = 0.2, kernel: str = "cauchy", max_chi2: float = posegraph.CHI2_6DOF_999):
+    """Merge N maps into map 0's frame: pairwise measurements, a robust pose graph, one fusion.
+
+    Args:
+      maps: ``[m_0, m_1, ...]`` of one resolution (else ``MergeError("resolution")``).
+      T_inits: optional ``n - 1`` guesses ``T_0_k`` (k = 1..n-1, map k's frame into map 0's).
+      pairs: optional pairwise guesses ``{(i, k): T_i_k}`` that connect every map to map 0
+        (a spanning tree such as a chain, or any graph). Without guesses (the default) every
+        candidate pair is registered guess-free (``refine="multi"`` from the identity).
+      refine: the registration mode used from the guesses (``"none"``: the guesses are the
+        measurements); ignored without guesses.
+      rule: ``fuse_many`` rule.
+      T_trues: optional true ``T_0_k`` (``n - 1``) for the thesis errors per map.
+      config: all other parameters (``MergeConfig``).
+      max_pairs_per_map: without guesses and from 7 maps on, each map's this many most similar
+        maps (coarse descriptor) are registered (``None``: every pair).
+      min_confidence: measurements below it are not used (``why="low_confidence"``).
+      prior_sigma_m, prior_sigma_rad: standard deviations of a guess as a prior [m], [rad].
+      kernel, max_chi2: the pose graph's robust kernel and rejection threshold
+        (``registration.posegraph.solve_robust``).
+
+    Returns ``(merged, ManyReport)``; ``merged`` fuses the placed maps in one pass
+    (``fuse_many``) in map 0's frame. Raises ``ValueError`` for a bad plan and ``MergeError``
+    for mixed resolutions.
+    """
+    maps = list(maps)
+    n = len(maps)
+    if n < 2:
+        raise ValueError("merge_many needs at least two maps")
+    cfg = config_with_overrides(config, refine, None, None, rule, None)
+    check_resolutions(maps, [f"maps[{i}]" for i in range(n)], False)
+    guesses, T0_guess = _guesses(n, T_inits, pairs)
+    T_trues = None if T_trues is None else [np.eye(4)] + [check_transform(T, f"T_trues[{k}]")
+                                                        for k, T in enumerate(T_trues)]
+    t_start = time.perf_counter()
+    timings, reg_timings = Timings(), Timings()
+    res = maps[0].resolution
+    with timings.stage("screen"):
+        if T0_guess is None:
+            cand, _ = screen_pairs(maps, max_pairs_per_map)
+        else:
+            near = [(i, j) for i in range(n) for j in range(i + 1, n)
+                    if _boxes_overlap(maps[i], maps[j], np.linalg.inv(T0_guess[i]) @ T0_guess[j], 2 * res)]
+            cand = sorted(set(near) | {(min(e), max(e)) for e in guesses})
+    edges: list[dict] = []
+    with timings.stage("register"):
+        for i, j in cand:
+            t0 = time.perf_counter()
+            if T0_guess is not None and cfg.registration.refine == "none":
+                continue
+            T_init = np.eye(4) if T0_guess is None else np.linalg.inv(T0_guess[i]) @ T0_guess[j]
+            try:
+                meas = measure_pair(maps[i], maps[j], T_init, cfg, T0_guess is None, reg_timings)
+            except MergeError as err:
+                edges.append(dict(i=i, j=j, kind="registration", T=None, info=None, conf=None, figures=None,
+                                  why=f"registration: {err.kind}: {err}", seconds=time.perf_counter() - t0, reg=None))
+                continue
+            edges.append(dict(i=i, j=j, kind="registration", T=meas.T_i_j, info=meas.information,
+                              conf=meas.confidence, figures=meas.registration.info,
+                              why="" if meas.confidence >= min_confidence else "low_confidence",
+                              seconds=time.perf_counter() - t0, reg=meas.registration))
+    guess_kind = "guess" if cfg.registration.refine == "none" else "prior"
+    prior_info = np.diag([prior_sigma_m ** -2.0] * 3 + [prior_sigma_rad ** -2.0] * 3)
+    for (i, k), T in guesses.items():
+        edges.append(dict(i=i, j=k, kind=guess_kind, T=T, info=prior_info, conf=None, figures=None, why="",
+                          seconds=0.0, reg=None))
+    usable = np.array([e["T"] is not None and e["why"] == "" for e in edges], bool)
+    with timings.stage("solve"):
+        if len(edges):
+            Z = np.stack([np.eye(4) if e["T"] is None else e["T"] for e in edges])
+            info = np.stack([np.zeros((6, 6)) if e["info"] is None else e["info"] for e in edges])
+            score = np.array([2.0 if e["kind"] == "guess" else (e["conf"] or 0.0) for e in edges])
+            sol = posegraph.solve_robust(n, [e["i"] for e in edges], [e["j"] for e in edges], Z, info,
+                                         score=score, usable=usable,
+                                         prior=np.array([e["kind"] == "prior" for e in edges]),
+                                         kernel=kernel, max_chi2=max_chi2)
+        else:
+            sol = posegraph.solve_robust(n, [0], [1], np.eye(4)[None], np.zeros((1, 6, 6)), usable=np.zeros(1, bool))
+    transforms = tuple(sol.T_0_k[k] if sol.placed[k] else None for k in range(n))
+    tc = cfg.transform
+    moved, order = [maps[0]], [0]
+    with timings.stage("transform"):
+        for k in range(1, n):
+            if sol.placed[k]:
+                moved.append(transform_map(maps[k], sol.T_0_k[k], tc.interpolation, space=tc.space,
+                                           chunk_bricks=tc.chunk_bricks))
+                order.append(k)
+    weights = None
+    if cfg.fuse.rule == "weighted":
+        if len(cfg.fuse.weights) != n:
+            raise ValueError(f"fuse.weights has {len(cfg.fuse.weights)} entries for {n} maps")
+        weights = [cfg.fuse.weights[k] for k in order]
+    with timings.stage("fuse") as stage:
+        merged, frep = stage.ready(fuse_many_with_report(moved, cfg.fuse.rule, weights=weights))
+    timings["total"] = time.perf_counter() - t_start
+    return merged, _report(maps, edges, sol, transforms, T_trues, T0_guess, cfg, timings, reg_timings, cand,
+                           merged, frep)
+
+
+def _report(maps, edges, sol, transforms, T_trues, T0_guess, cfg, timings, reg_timings, cand, merged, frep):
+    n = len(maps)
+    m = len(edges)
+    kept = np.asarray(sol.kept)[:m] if m else np.zeros(0, bool)
+    edge_reports = []
+    for e, ed in enumerate(edges):
+        why = ed["why"] or ("" if kept[e] else sol.why[e])
+        measured = ed["T"] is not None and transforms[ed["i"]] is not None and transforms[ed["j"]] is not None
+        edge_reports.append(EdgeReport(
+            i=ed["i"], j=ed["j"], kind=ed["kind"], T_i_j=ed["T"], confidence=ed["conf"], information=ed["info"],
+            residual=sol.residual[e] if measured else None, chi2=float(sol.chi2[e]) if measured else None,
+            kept=bool(kept[e]), why=why, figures=ed["figures"], seconds=ed["seconds"]))
+    map_reports, merge_reports = [], []
+    for k in range(n):
+        touching = tuple(e for e in range(m)
+                         if kept[e] and edges[e]["kind"] != "prior" and k in (edges[e]["i"], edges[e]["j"]))
+        placed = transforms[k] is not None
+        cov = sol.covariance[k] if placed and k else None
+        s_m, s_r = _sigmas(cov)
+        eps = (None, None)
+        if T_trues is not None and placed and k:
+            eps = (float(reg.rotation_error(transforms[k], T_trues[k])),
+                   float(reg.translation_error(transforms[k], T_trues[k])))
+        map_reports.append(MapReport(index=k, status="root" if k == 0 else ("placed" if placed else "unplaced"),
+                                     T_0_k=transforms[k], covariance=cov, sigma_m=s_m, sigma_rad=s_r, edges=touching,
+                                     leaves=maps[k].num_leaves, epsilon_r=eps[0], epsilon_t=eps[1]))
+        if k == 0:
+            continue
+        best = max(touching, key=lambda e: edges[e]["conf"] or 0.0, default=None)
+        figs = None if best is None else edges[best]["figures"]
+        placing = None if best is None else edges[best]["reg"]
+        T_init = np.eye(4) if T0_guess is None else T0_guess[k]
+        T_used = transforms[k] if placed else T_init
+        e_r = e_t = e_r0 = e_t0 = None
+        if T_trues is not None:
+            e_r0, e_t0 = float(reg.rotation_error(T_init, T_trues[k])), float(reg.translation_error(T_init, T_trues[k]))
+            e_r, e_t = float(reg.rotation_error(T_used, T_trues[k])), float(reg.translation_error(T_used, T_trues[k]))
+        merge_reports.append(MergeReport(
+            T_1_2_init=T_init, T_1_2=T_used, refine=cfg.registration.refine, icp=figs, epsilon_r_init=e_r0,
+            epsilon_t_init=e_t0, epsilon_r=e_r, epsilon_t=e_t, counts={"leaves_1": maps[0].num_leaves,
+                                                                        "leaves_2": maps[k].num_leaves,
+                                                                        "leaves_merged": merged.num_leaves},
+            timings={}, resolution=maps[0].resolution, T_1_2_true=None if T_trues is None else T_trues[k],
+            status="ok" if placed else "unplaced", icp_result=None if placing is None else placing.result,
+            points_1=None if placing is None else placing.points_1,
+            points_2=None if placing is None else placing.points_2))
+    reg_edges = [e for e in edge_reports if e.kind != "prior"]
+    figures = {"maps_placed": int(sum(t is not None for t in transforms)), "pairs_possible": n * (n - 1) // 2,
+               "pairs_registered": sum(e.kind == "registration" for e in edge_reports),
+               "edges_kept": sum(e.kept for e in reg_edges), "edges_rejected": sum(not e.kept for e in reg_edges),
+               "candidate_pairs": [list(c) for c in cand], "solver_iterations": sol.num_iterations,
+               "solver_rounds": sol.rounds, "solver_cost": sol.cost, "solver_converged": sol.converged,
+               "cycles_checked": int(len(sol.cycles)), "leaves_merged": merged.num_leaves, "fuse": frep.host(),
+               "registration_stages": dict(reg_timings)}
+    warnings = tuple(f"map {k} overlaps no other map it could be registered to: left out of the merged map"
+                     for k in range(n) if transforms[k] is None)
+    return ManyReport(transforms=transforms, maps=tuple(map_reports), edges=tuple(edge_reports), figures=figures,
+                      timings=dict(timings), resolution=maps[0].resolution, warnings=warnings,
+                      merge_reports=tuple(merge_reports))
