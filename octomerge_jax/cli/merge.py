@@ -20,10 +20,14 @@ EXIT_INPUT = 1
 EXIT_RESOLUTION = 3
 EXIT_NO_OVERLAP = 4
 EXIT_ICP = 5
+EXIT_AMBIGUOUS = 7
+# a merge that ran but whose registration is not to be trusted: no merged map without --force
+_STATUS_EXIT = {"no_overlap": EXIT_NO_OVERLAP, "failed": EXIT_ICP, "ambiguous": EXIT_AMBIGUOUS}
 _KIND_EXIT = {"resolution": EXIT_RESOLUTION, "no_overlap": EXIT_NO_OVERLAP, "icp_failed": EXIT_ICP,
               "not_converged": EXIT_ICP, "empty": EXIT_NO_OVERLAP, "transform": EXIT_INPUT}
 
 EPILOG = """examples:
+  octomerge merge robot1.bt robot2.bt merged.bt                  # no guess: the transform is searched for
   octomerge merge robot1.bt robot2.bt merged.bt --xyz 1.5 -0.8 0 --rpy 0 0 0.785
   octomerge merge robot1.ot robot2.ot merged.ot 1.5 -0.8 0 0 0 0.785   # thesis argument order
   octomerge merge a.bt b.bt out.bt --rpy 0 0 45 --degrees --refine multi --report r.json --figure icp.png
@@ -34,9 +38,14 @@ The guess T_1_2 maps map 2's frame into map 1's: x y z in metres, roll pitch yaw
 (R = Rz(yaw) Ry(pitch) Rx(roll), as OctoMap's Pose6D). OUT is .bt (maximum likelihood) or .ot
 (log-odds) and is in map 1's frame. Outputs are written atomically; inputs are never overwritten.
 
+Without a guess (no x y z roll pitch yaw, --xyz or --rpy) the default refinement is global:
+the transform is searched for and the report gets a status and a confidence in [0, 1].
+
 exit codes: 0 merged (an unconverged ICP is a warning unless --strict), 1 bad input (missing or
 unreadable file, NaN guess, ...), 2 usage, 3 resolutions differ (see --resample), 4 no overlap
-under the guess, 5 ICP failed (too few correspondences, or not converged with --strict).
+(under the guess, or none found), 5 registration failed (too few correspondences, ICP in a
+wrong basin, or not converged with --strict), 7 ambiguous (two distinct poses fit alike). For
+4, 5 and 7 no merged map is written unless --force (the --report is written either way).
 """
 
 
@@ -60,7 +69,8 @@ def register(subparsers) -> None:
     g.add_argument("--true-rpy", type=float, nargs=3, metavar=("R", "P", "Y"), help="ground truth rotation")
     a = p.add_argument_group("pipeline (override --config)")
     a.add_argument("--refine", choices=REFINE_CHOICES,
-                   help="icp (default), multi (multi-hypothesis ICP for poor guesses) or none")
+                   help="global (default without a guess: no guess needed), icp (default with a guess), "
+                        "multi (multi-hypothesis ICP for poor guesses), dense, icp+dense or none")
     a.add_argument("--hypotheses", choices=HYPOTHESES_CHOICES,
                    help="starts of --refine multi: yaw_grid (the guess turned in yaw), correlation "
                         "(global search over yaw x translation, for partial overlap and guesses metres off) or "
@@ -82,7 +92,9 @@ def register(subparsers) -> None:
     o.add_argument("--figure", type=Path, metavar="PNG", help="overlap clouds before/after ICP (Fig. 7.6)")
     o.add_argument("--map-figure", type=Path, metavar="PNG", help="merged map, occupancy-shaded (Fig. 7.7)")
     o.add_argument("--icp-figure", type=Path, metavar="PNG", help="ICP convergence per iteration")
-    o.add_argument("--force", action="store_true", help="allow OUT to overwrite an existing file")
+    o.add_argument("--force", action="store_true",
+                   help="allow OUT to overwrite an existing file, and write OUT even when the registration's "
+                        "status is ambiguous, no_overlap or failed (exit code unchanged)")
     o.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
     p.set_defaults(func=run)
 
@@ -157,10 +169,20 @@ def run(args) -> int:
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a))
     say(f"map 1: {args.in1} ({m1.num_leaves:,} leaves, {m1.resolution:g} m)")
     say(f"map 2: {args.in2} ({m2.num_leaves:,} leaves, {m2.resolution:g} m)")
+    given = bool(args.pose or args.xyz or args.rpy)
     try:
-        merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess), T_1_2_true=truth, config=cfg)
+        merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess) if given else None, T_1_2_true=truth,
+                               config=cfg)
     except MergeError as err:
         raise CliError(str(err), _KIND_EXIT.get(err.kind, EXIT_INPUT)) from None
+    code = _STATUS_EXIT.get(report.status, 0)
+    if code and not args.force:
+        if args.report:
+            report.with_timings(load=t_load).to_json(args.report)
+        say(report.summary())
+        print(f"octomerge merge: registration {report.status}: {args.out} not written (--force writes it); "
+              + "; ".join(report.warnings), file=sys.stderr)
+        return code
     t1 = time.perf_counter()
     save(merged, args.out)
     report = report.with_timings(load=t_load, save=time.perf_counter() - t1)
@@ -172,7 +194,7 @@ def run(args) -> int:
         + "".join(f", {p}" for p in (args.report, args.figure, args.map_figure, args.icp_figure) if p))
     for w in report.warnings:
         print(f"octomerge merge: warning: {w}", file=sys.stderr)
-    return 0
+    return code
 
 
 def _check_output_side(path: Path, inputs):
