@@ -171,8 +171,8 @@ def run(args) -> int:
     say(f"map 2: {args.in2} ({m2.num_leaves:,} leaves, {m2.resolution:g} m)")
     given = bool(args.pose or args.xyz or args.rpy)
     try:
-        merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess) if given else None, T_1_2_true=truth,
-                               config=cfg)
+        merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess) if given else None, refine=args.refine,
+                               T_1_2_true=truth, config=cfg)
     except MergeError as err:
         raise CliError(str(err), _KIND_EXIT.get(err.kind, EXIT_INPUT)) from None
     code = _STATUS_EXIT.get(report.status, 0)

@@ -13,11 +13,12 @@ guess is given): ``register_global``; and the verdict on a local ICP result, ``j
 
 Verdict (``Registration.info["verdict"]``, the merge's ``MergeReport.status``): ``"ok"``;
 ``"ambiguous"`` when a distinct second pose agrees nearly as well (symmetric rooms,
-corridors); ``"no_overlap"`` when the best pose explains too little of the smaller map;
+corridors) or the confidence is below ``MIN_CONFIDENCE`` (so little overlap that another
+placement, e.g. beside map 1 sharing a wall, is about as consistent); ``"no_overlap"`` when the best pose explains too little of the smaller map;
 ``"failed"`` when its ICP did not end usable. Maps are assumed gravity-aligned to within a
 few degrees (``registration.global_search``). The thresholds are calibrated on the benchmark
-grid (``benchmarks/bench_global.py``); see ``docs/design.md``, "Guess-free registration:
-measured choice".
+grid (``benchmarks/bench_global.py``); see
+``docs/design.md``, "Guess-free registration: measured choice".
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from .config import MergeConfig
 from .report import MergeError, Registration
 from .timings import Timings
 
-__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS", "MIN_SHARED", "explained_fraction",
+__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MIN_CONFIDENCE", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS", "MIN_SHARED", "explained_fraction",
            "judge_local", "register_global"]
 
 #: a distinct second pose whose net agreement is within this share of the best's: "ambiguous"
@@ -51,12 +52,15 @@ MIN_EXPLAINED = 0.12
 CONFLICT_WEIGHT = 3.0
 #: coarse cells in agreement less CONFLICT_WEIGHT x those in conflict, over the smaller map's cells, below: "no_overlap"
 MIN_SHARED = 0.1
+#: below this confidence a result is not "ok": little overlap leaves other placements about as good
+MIN_CONFIDENCE = 0.3
 #: a local ICP result whose fitness (inliers over map 2's commonly mapped points) is below: "failed"
 MIN_LOCAL_FITNESS = 0.3
 _NORMAL_RADIUS = 2.0  # [coarse cells]
 _YAW_PEAKS, _TRANSLATION_PEAKS = 3, 3  # yaw peaks (each also turned by pi) x translation peaks per yaw
 _MAX_CORRELATION_CELLS = 1 << 21  # the correlation grid's cells (padded): its cell grows to fit
-_NUM_REFINED = 3  # distinct poses of the highest net agreement refined by ICP
+_NUM_REFINED = 3  # distinct poses of the highest net agreement refined by ICP...
+_REFINE_SHARE = 0.6  # ...when their net agreement before ICP is at least this share of the best's
 
 
 def explained_fraction(points_1, points_2, T_1_2, distance: float, config: MergeConfig) -> tuple[int, float]:
@@ -142,8 +146,8 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     the gap to the second-best distinct pose), ``confidence`` in [0, 1], ``candidates``
     (``{"T_1_2": 4x4 list, "score": -map loss, "agreement", "explained"}``, best first).
     Raises ``MergeError("empty")`` when a map has fewer than ``min_overlap_points`` occupied
-    voxels. Method: Rusu et al. 2009 (FPFH), Yang et al. 2021 / Lim et al. 2025 (cliques),
-    thesis Alg. 2-3 (overlap, ICP)."""
+    voxels. Method: ``registration.global_search`` (orientation histograms and correlation,
+    Bosse and Zlot 2008), thesis Alg. 2-3 (overlap, ICP)."""
     config = MergeConfig() if config is None else config
     timings = Timings() if timings is None else timings
     rc = config.registration
@@ -166,6 +170,8 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         s2 = cell_sets(p2, free_points(m2, v), v)
         screened = np.array([_score(s1, s2, T) for T in T_all], np.float64)
         picked = distinct_poses(T_all, screened, extent, 2.0 * v, _NUM_REFINED)
+        # a runner-up far behind the best before ICP is not refined (ICP is most of the time)
+        picked = [i for i in picked if i == picked[0] or screened[i] >= _REFINE_SHARE * screened[picked[0]]]
     refined = [_refine(p1, p2, T_all[i], int(i), config, resolution, timings) for i in picked]
     with timings.stage("verify"):
         agree_conflict = [consistency_score(s1, s2, r.T_1_2) for r in refined]
@@ -186,10 +192,9 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         verdict = "no_overlap"
     elif not usable:
         verdict = "failed"
-    elif gap < AMBIGUOUS_GAP:
-        verdict = "ambiguous"
     else:
-        verdict = "ok"
+        confidence = _confidence(gap, shared)
+        verdict = "ok" if gap >= AMBIGUOUS_GAP and confidence >= MIN_CONFIDENCE else "ambiguous"
     confidence = _confidence(gap, shared)
     info_g.update(cells=[int(s1.occupied.codes.shape[0]), int(s2.occupied.codes.shape[0])],
                   screened=[round(float(x), 1) for x in screened[picked]], agree=agree, conflict=conflict,

@@ -15,8 +15,8 @@ by a 3-D cross-correlation of the coarse occupancy grids (FFT), a few peaks per 
 
 The idea is the classic one of rotation from orientation histograms and translation from
 phase-free correlation (e.g. Bosse and Zlot, "Map matching and data association for large-scale
-two-dimensional laser scan-based SLAM", IJRR 2008); see ``docs/design.md``, "Guess-free
-registration: measured choice". Host NumPy: a few thousand coarse points and FFTs of at most
+two-dimensional laser scan-based SLAM", IJRR 2008); see
+``docs/design.md``, "Guess-free registration: measured choice". Host NumPy: a few thousand coarse points and FFTs of at most
 a few million cells.
 """
 
@@ -150,14 +150,14 @@ def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2
     if int(np.prod(shape)) > max_cells:
         raise ValueError(f"correlation grid of {shape} cells of {voxel:g} m exceeds {max_cells} cells")
     o1, o2 = _grid(points_1, voxel, lo1, tuple(s1)), _grid(points_2, voxel, lo2, tuple(s2))
-    g1, g2 = np.fft.rfftn(o1, shape), np.fft.rfftn(o2, shape)
+    g1, g2 = np.fft.rfftn(o1, shape, axes=(0, 1, 2)), np.fft.rfftn(o2, shape, axes=(0, 1, 2))
     # corr[d] = sum_x g1[x + d] g2[x]: map 2's cell x lands on map 1's cell x + d
     spec = g1 * np.conj(g2)
     if free_1 is not None:
-        spec -= np.fft.rfftn(_free_grid(free_1, o1, voxel, lo1), shape) * np.conj(g2)
+        spec -= np.fft.rfftn(_free_grid(free_1, o1, voxel, lo1), shape, axes=(0, 1, 2)) * np.conj(g2)
     if free_2 is not None:
-        spec -= g1 * np.conj(np.fft.rfftn(_free_grid(free_2, o2, voxel, lo2), shape))
-    corr = np.fft.irfftn(spec, shape)
+        spec -= g1 * np.conj(np.fft.rfftn(_free_grid(free_2, o2, voxel, lo2), shape, axes=(0, 1, 2)))
+    corr = np.fft.irfftn(spec, shape, axes=(0, 1, 2))
     flat = np.argsort(-corr, axis=None)[: 64 * num_peaks]
     shifts, scores = [], []
     for f in flat:
