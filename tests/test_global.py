@@ -79,6 +79,7 @@ def test_small_room_from_random_yaw(room, yaw):
     assert any(_right(np.asarray(c["T_1_2"]), T_true) for c in r.candidates)
 
 
+@pytest.mark.slow
 def test_merge_without_guess_is_global(room):
     T_true = transform_from_xyz_rpy(0.6, -0.4, 0.0, 0.0, 0.0, 2.4)
     m1, m2 = _room_pair(room, T_true)

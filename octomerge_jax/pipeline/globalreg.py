@@ -59,8 +59,7 @@ MIN_LOCAL_FITNESS = 0.3
 _NORMAL_RADIUS = 2.0  # [coarse cells]
 _YAW_PEAKS, _TRANSLATION_PEAKS = 3, 3  # yaw peaks (each also turned by pi) x translation peaks per yaw
 _MAX_CORRELATION_CELLS = 1 << 21  # the correlation grid's cells (padded): its cell grows to fit
-_NUM_REFINED = 3  # distinct poses of the highest net agreement refined by ICP...
-_REFINE_SHARE = 0.6  # ...when their net agreement before ICP is at least this share of the best's
+_NUM_REFINED = 3  # distinct poses of the highest net agreement refined by ICP (all: see docs/design.md)
 
 
 def explained_fraction(points_1, points_2, T_1_2, distance: float, config: MergeConfig) -> tuple[int, float]:
@@ -170,8 +169,6 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         s2 = cell_sets(p2, free_points(m2, v), v)
         screened = np.array([_score(s1, s2, T) for T in T_all], np.float64)
         picked = distinct_poses(T_all, screened, extent, 2.0 * v, _NUM_REFINED)
-        # a runner-up far behind the best before ICP is not refined (ICP is most of the time)
-        picked = [i for i in picked if i == picked[0] or screened[i] >= _REFINE_SHARE * screened[picked[0]]]
     refined = [_refine(p1, p2, T_all[i], int(i), config, resolution, timings) for i in picked]
     with timings.stage("verify"):
         agree_conflict = [consistency_score(s1, s2, r.T_1_2) for r in refined]
