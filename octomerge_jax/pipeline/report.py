@@ -75,7 +75,8 @@ class MergeReport:
     - ``T_1_2_init``, ``T_1_2``: ``(4, 4)`` float64, the initial guess and the transform used
       (after refinement), mapping map 2's frame into map 1's [m].
     - ``T_1_2_true``: ground truth if given, else ``None``.
-    - ``refine``: ``"icp"``, ``"multi"``, ``"dense"``, ``"icp+dense"`` or ``"none"``.
+    - ``refine``: ``"icp"``, ``"multi"``, ``"dense"``, ``"icp+dense"``, ``"none"`` or ``"global"``
+      (then ``icp`` also holds ``verdict`` and ``global``: ``register_global``'s figures).
     - ``icp``: the ICP result as a dict (``converged``, ``status``, ``num_iterations``,
       ``num_inliers``, ``rmse`` [m], ``fitness``, ``correspondence_distance`` [m], ...; for
       ``"dense"`` the same keys for the dense alignment (status names ``str(Status)``,
