@@ -139,6 +139,19 @@ def test_icp_in_a_wrong_basin_is_failed(room):
     assert good.status == "ok" and good.epsilon_r < 0.02
 
 
+def test_cli_no_guess_no_walls_is_no_overlap(tmp_path):
+    """Two flat floors: no wall to take a yaw from, so no candidate: exit 4, no OUT, the report."""
+    g = np.stack(np.meshgrid(np.arange(0, 3, RES), np.arange(0, 2, RES), [0.05], indexing="ij"), -1).reshape(-1, 3)
+    m = from_voxels(g, np.full(g.shape[0], 2.0, np.float32), RES)
+    a, b, out, rep = tmp_path / "a.bt", tmp_path / "b.bt", tmp_path / "out.bt", tmp_path / "r.json"
+    save(m, a)
+    save(m, b)
+    assert main(["merge", str(a), str(b), str(out), "--report", str(rep), "-q"]) == 4
+    d = json.loads(rep.read_text())
+    assert not out.exists() and d["status"] == "no_overlap" and d["refine"] == "global" and d["confidence"] == 0.0
+
+
+@pytest.mark.slow
 def test_cli_exit_codes_and_force(tmp_path, room):
     T_true = transform_from_xyz_rpy(0.6, -0.4, 0.0, 0.0, 0.0, 0.0)
     m1, m2 = _room_pair(room, T_true)

@@ -221,7 +221,9 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
     if m1.num_leaves == 0 and m2.num_leaves == 0:
         raise MergeError("both maps are empty", "empty")
 
-    registration = register(m1, m2, T_init, cfg, timings)
+    # refine="global" without a guess: no guess to verify among its candidates
+    guess = None if T_1_2_init is None and cfg.registration.refine == "global" else T_init
+    registration = register(m1, m2, guess, cfg, timings)
     m2_in_1 = transform_to_frame_1(m2, registration.T_1_2, cfg, timings)
     weights = tuple(cfg.fuse.weights[:2]) if len(cfg.fuse.weights) >= 2 else (1.0, 1.0)
     with timings.stage("fuse") as stage:

@@ -59,7 +59,8 @@ class DenseStep(NamedTuple):
 def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig,
              timings: Timings | None = None) -> Registration:
     """Thesis Alg. 1-3 on the host: the transform ``T_1_2`` (map 2's frame into map 1's) that
-    ``config.registration.refine`` finds from ``T_1_2_init`` ``(4, 4)`` float64.
+    ``config.registration.refine`` finds from ``T_1_2_init`` ``(4, 4)`` float64 (``None``
+    only for ``"global"``: no guess).
 
     ``timings``: seconds per stage are added to it (default: a new, discarded one).
     Raises ``MergeError`` for empty clouds (``"empty"``), no overlap (``"no_overlap"``) or
