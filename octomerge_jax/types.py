@@ -24,7 +24,7 @@ Method = Literal["trilinear", "nearest", "thesis"]
 #: Which quantity ``sample`` / ``transform_map`` interpolates.
 Space = Literal["probability", "log_odds"]
 #: The registration step of a merge.
-Refine = Literal["icp", "multi", "none", "dense", "icp+dense"]
+Refine = Literal["icp", "multi", "none", "dense", "icp+dense", "global"]
 #: How the commonly mapped subsets are selected before ICP (thesis Alg. 2).
 OverlapMethod = Literal["voxel", "bbox", "none"]
 #: What a merge does when ICP stops at its iteration limit.

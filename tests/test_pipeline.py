@@ -131,7 +131,7 @@ def test_report_json_names(merged_icp, tmp_path):
     assert data == json.loads(text)
     assert set(data) == {"status", "refine", "resolution", "T_1_2_init", "T_1_2", "T_1_2_true", "icp",
                          "epsilon_r_init", "epsilon_t_init", "epsilon_r", "epsilon_t", "displacement_init",
-                         "displacement", "counts", "timings", "warnings"}
+                         "displacement", "counts", "timings", "warnings", "confidence", "candidates"}
     np.testing.assert_allclose(np.asarray(data["T_1_2"]), rep.T_1_2)
     assert data["icp"]["status"] == "converged" and data["status"] == "ok"
     assert data["epsilon_r"] == pytest.approx(rep.epsilon_r)

@@ -24,10 +24,14 @@ EXIT_INPUT = 1
 EXIT_RESOLUTION = 3
 EXIT_NO_OVERLAP = 4
 EXIT_ICP = 5
+EXIT_AMBIGUOUS = 7
+# a merge that ran but whose registration is not to be trusted: no merged map without --force
+_STATUS_EXIT = {"no_overlap": EXIT_NO_OVERLAP, "failed": EXIT_ICP, "ambiguous": EXIT_AMBIGUOUS}
 _KIND_EXIT = {"resolution": EXIT_RESOLUTION, "no_overlap": EXIT_NO_OVERLAP, "icp_failed": EXIT_ICP,
               "not_converged": EXIT_ICP, "empty": EXIT_NO_OVERLAP, "transform": EXIT_INPUT}
 
 EPILOG = """examples:
+  octomerge merge robot1.bt robot2.bt merged.bt                  # no guess: the transform is searched for
   octomerge merge robot1.bt robot2.bt merged.bt --xyz 1.5 -0.8 0 --rpy 0 0 0.785
   octomerge merge robot1.ot robot2.ot merged.ot 1.5 -0.8 0 0 0 0.785   # thesis argument order
   octomerge merge a.bt b.bt out.bt --rpy 0 0 45 --degrees --refine multi --report r.json --figure icp.png
@@ -41,9 +45,14 @@ The guess T_1_2 maps map 2's frame into map 1's: x y z in metres, roll pitch yaw
 compute; an existing file (an input too, for OUT) is overwritten only with --force. An angle
 beyond 2 pi rad gets a warning (degrees without --degrees?).
 
+Without a guess (no x y z roll pitch yaw, --xyz or --rpy) the default refinement is global:
+the transform is searched for and the report gets a status and a confidence in [0, 1].
+
 exit codes: 0 merged (an unconverged ICP is a warning unless --strict), 1 bad input (missing or
 unreadable file, NaN guess, ...), 2 usage, 3 resolutions differ (see --resample), 4 no overlap
-under the guess, 5 ICP failed (too few correspondences, or not converged with --strict).
+(under the guess, or none found), 5 registration failed (too few correspondences, ICP in a
+wrong basin, or not converged with --strict), 7 ambiguous (two distinct poses fit alike). For
+4, 5 and 7 no merged map is written unless --force (the --report is written either way).
 """
 
 
@@ -67,7 +76,8 @@ def register(subparsers) -> None:
     g.add_argument("--true-rpy", type=float, nargs=3, metavar=("R", "P", "Y"), help="ground truth rotation")
     a = p.add_argument_group("pipeline (override --config)")
     a.add_argument("--refine", choices=REFINE_CHOICES,
-                   help="icp (default), multi (multi-hypothesis ICP for poor guesses) or none")
+                   help="global (default without a guess: no guess needed), icp (default with a guess), "
+                        "multi (multi-hypothesis ICP for poor guesses), dense, icp+dense or none")
     a.add_argument("--hypotheses", choices=HYPOTHESES_CHOICES,
                    help="starts of --refine multi: yaw_grid (the guess turned in yaw), correlation "
                         "(global search over yaw x translation, for partial overlap and guesses metres off) or "
@@ -93,7 +103,8 @@ def register(subparsers) -> None:
                    help="after merging, serve a live 3-D view (octomerge view; needs viser)")
     add_view_options(p)
     o.add_argument("--force", action="store_true",
-                   help="allow outputs to overwrite existing files (OUT may replace an input)")
+                   help="allow outputs to overwrite existing files (OUT may replace an input), and write OUT even "
+                        "when the registration's status is ambiguous, no_overlap or failed (exit code unchanged)")
     o.add_argument("--out-bag", type=Path, metavar="BAG",
                    help="also write the merged map as one octomap_msgs/Octomap message (binary for a .bt OUT, "
                         "full for .ot) in map 1's frame: BAG.bag is a ROS 1 bag, other names a ROS 2 bag folder")
@@ -178,14 +189,25 @@ def run(args) -> int:
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a))
     say(f"map 1: {args.in1} ({m1.num_leaves:,} leaves, {m1.resolution:g} m)")
     say(f"map 2: {args.in2} ({m2.num_leaves:,} leaves, {m2.resolution:g} m)")
+    given = bool(args.pose or args.xyz or args.rpy)
     bar = StageBar(show_bars(args.quiet), "merge")
     try:
         with bar.watch():
-            merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess), T_1_2_true=truth, config=cfg)
+            merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess) if given else None, refine=args.refine,
+                                   T_1_2_true=truth, config=cfg)
     except MergeError as err:
         raise CliError(str(err), _KIND_EXIT.get(err.kind, EXIT_INPUT)) from None
     finally:
         bar.close()
+    code = _STATUS_EXIT.get(report.status, 0)
+    if code and not args.force:
+        if args.report:
+            with writing(args.report):
+                report.with_timings(load=t_load).to_json(args.report)
+        say(report.summary())
+        print(f"octomerge merge: registration {report.status}: {args.out} not written (--force writes it); "
+              + "; ".join(report.warnings), file=sys.stderr)
+        return code
     t1 = time.perf_counter()
     with writing(args.out):
         save(merged, args.out)
@@ -207,7 +229,7 @@ def run(args) -> int:
         print(f"octomerge merge: warning: {w}", file=sys.stderr)
     if args.visualize:
         visualize_merge(m1, m2, report, cfg, args)
-    return 0
+    return code
 
 
 def write_figures(report, merged, figure, map_figure, icp_figure, cfg, truth=None):

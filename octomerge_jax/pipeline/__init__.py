@@ -7,6 +7,7 @@ from .config import (COARSE_MATCHING_CHOICES, DEMO_SCENES, HYPOTHESES_CHOICES, O
                      OVERLAP_CHOICES, REFINE_CHOICES, BatchConfig, DemoConfig, FuseConfig, MergeConfig,
                      RegistrationConfig, TransformConfig, config_from_dict, config_to_dict, dumps_toml, load_config,
                      save_config, validate)
+from .globalreg import judge_local, register_global
 from .many import merge_many
 from .many_report import EdgeReport, ManyReport, MapReport
 from .merging import check_resolutions, merge, resample_to_resolution, transform_from_xyz_rpy
@@ -22,7 +23,8 @@ __all__ = [
     "HYPOTHESES_CHOICES", "MergeConfig", "MergeError", "MergeReport", "ON_NOT_CONVERGED_CHOICES",
     "OVERLAP_CHOICES", "REFINE_CHOICES", "Registration", "RegistrationConfig", "Timings", "TransformConfig",
     "VOXEL_OVERLAP_VOXELS", "check_resolutions", "config_from_dict", "config_to_dict", "dumps_toml", "icp_trace",
-    "load_config", "merge", "merge_batch", "merge_many", "overlap_margin", "point_stats", "rank_by_map_agreement",
-    "register", "resample_to_resolution", "save_config", "transform_from_xyz_rpy", "validate",
+    "judge_local", "load_config", "merge", "merge_batch", "merge_many", "overlap_margin", "point_stats",
+    "rank_by_map_agreement", "register", "register_global", "resample_to_resolution", "save_config",
+    "transform_from_xyz_rpy", "validate",
     "stage_listener",  # --- bags (progress)
 ]

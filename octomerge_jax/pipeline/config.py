@@ -63,7 +63,9 @@ class RegistrationConfig:
       ``"multi"`` (candidates from ``hypotheses``, the one whose maps agree best picked, then
       one ICP on the commonly mapped subsets from it, kept if the maps agree better; for poor
       guesses), ``"dense"`` (``registration.align_dense``: the occupancy fields),
-      ``"icp+dense"`` (both, dense from ICP's result) or ``"none"`` (trust the guess).
+      ``"icp+dense"`` (both, dense from ICP's result), ``"none"`` (trust the guess) or
+      ``"global"`` (no guess needed: ``pipeline.register_global``; what ``merge`` uses when no
+      guess is given and ``refine`` is left at ``"icp"``).
     - ``overlap``: ``"bbox"`` (thesis Alg. 2: intersection of bounding boxes; the default),
       ``"voxel"`` (points near the other map's points under the guess) or ``"none"`` (all
       points).

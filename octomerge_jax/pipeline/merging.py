@@ -161,9 +161,20 @@ def pair_report(m1: OccupancyMap, m2: OccupancyMap, registration: Registration, 
         T_1_2_init=T_1_2_init, T_1_2=T_1_2, refine=config.registration.refine, icp=registration.info,
         epsilon_r_init=eps[0], epsilon_t_init=eps[1], epsilon_r=eps[2], epsilon_t=eps[3],
         counts=counts, timings=dict(timings), resolution=m1.resolution, T_1_2_true=T_1_2_true,
-        warnings=tuple(warnings), status="ok" if registration.converged else "not_converged",
+        warnings=tuple(warnings), status=_status(registration),
         displacement_init=disp[0], displacement=disp[1], icp_result=registration.result,
-        points_1=registration.points_1, points_2=registration.points_2)
+        points_1=registration.points_1, points_2=registration.points_2,
+        confidence=registration.confidence, candidates=registration.candidates)
+
+
+# --- global
+def _status(registration: Registration) -> str:
+    """``MergeReport.status``: the registration's verdict (``info["verdict"]``) when it is not
+    ``"ok"``, else ``"ok"`` / ``"not_converged"`` by convergence."""
+    verdict = (registration.info or {}).get("verdict")
+    if verdict not in (None, "ok"):
+        return str(verdict)
+    return "ok" if registration.converged else "not_converged"
 
 
 def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | None = None,
@@ -175,8 +186,12 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
       m1, m2: ``OccupancyMap`` s of one resolution (else ``MergeError(kind="resolution")``
         unless ``resample=True``, which resamples ``m2`` onto ``m1``'s grid first).
       T_1_2_init: ``(4, 4)`` initial guess mapping map 2's frame into map 1's [m]
-        (``None``: identity; see ``transform_from_xyz_rpy``).
-      refine: ``"icp"``, ``"multi"`` (multi-hypothesis search for poor guesses), ``"dense"``
+        (``None``: no guess: unless ``refine`` is given or the config sets another mode than
+        the default ``"icp"``, the transform is searched for, ``refine="global"``; see
+        ``transform_from_xyz_rpy``).
+      refine: ``"global"`` (no guess needed; status ``"ambiguous"`` / ``"no_overlap"`` /
+        ``"failed"`` when the result is not to be trusted), ``"icp"``, ``"multi"``
+        (multi-hypothesis search for poor guesses), ``"dense"``
         (``align_dense``: gradient-based alignment of the occupancy fields), ``"icp+dense"``
         or ``"none"``.
       overlap: ``"bbox"`` (thesis Alg. 2, default) or ``"voxel"`` subsets fed to ICP, or
@@ -189,6 +204,8 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
     Raises ``MergeError`` (a ``ValueError``) with ``kind`` for inputs the user must fix.
     """
     cfg = config_with_overrides(config, refine, overlap, interpolation, rule, resample)
+    if T_1_2_init is None and refine is None and cfg.registration.refine == "icp":
+        cfg = cfg.replace(registration={"refine": "global"})  # no guess: search for the transform
     timings = Timings()
     warnings: list[str] = []
     t_start = time.perf_counter()
@@ -202,7 +219,9 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
     if m1.num_leaves == 0 and m2.num_leaves == 0:
         raise MergeError("both maps are empty", "empty")
 
-    registration = register(m1, m2, T_init, cfg, timings)
+    # refine="global" without a guess: no guess to verify among its candidates
+    guess = None if T_1_2_init is None and cfg.registration.refine == "global" else T_init
+    registration = register(m1, m2, guess, cfg, timings)
     m2_in_1 = transform_to_frame_1(m2, registration.T_1_2, cfg, timings)
     weights = tuple(cfg.fuse.weights[:2]) if len(cfg.fuse.weights) >= 2 else (1.0, 1.0)
     with timings.stage("fuse") as stage:

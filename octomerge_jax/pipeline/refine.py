@@ -8,7 +8,11 @@ into the transform used, per ``config.registration.refine``, one function per mo
   (``candidates.py``), picked by the agreement of the two *maps*, then a local ICP step
   (``ranking.py``; ``register_multi``);
 - ``"dense"``: ``align_dense`` (the occupancy fields, gradient-based; ``register_dense``);
-- ``"icp+dense"``: ICP, then the dense alignment from its result (``dense_after_icp``).
+- ``"icp+dense"``: ICP, then the dense alignment from its result (``dense_after_icp``);
+- ``"global"``: no guess needed (``globalreg.register_global``; the default of ``merge``
+  without a guess).
+
+The ICP modes' results are judged by ``globalreg.judge_local`` (a wrong basin: ``"failed"``).
 
 Every mode reports ICP's fields (``status`` as ``str(Status)``, inliers, rmse, fitness); a
 transform that did not come from ICP gets them measured at it (``point_stats``).
@@ -27,6 +31,7 @@ from ..registration import Status
 from .candidates import multi_candidates
 from .clouds import Clouds, icp_info, icp_kwargs, occupied_clouds, overlap_margin, point_stats, select_overlap
 from .config import MergeConfig
+from .globalreg import judge_local, register_global
 from .ranking import rank_and_refine
 from .report import MergeError, Registration
 from .timings import Timings
@@ -54,7 +59,8 @@ class DenseStep(NamedTuple):
 def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig,
              timings: Timings | None = None) -> Registration:
     """Thesis Alg. 1-3 on the host: the transform ``T_1_2`` (map 2's frame into map 1's) that
-    ``config.registration.refine`` finds from ``T_1_2_init`` ``(4, 4)`` float64.
+    ``config.registration.refine`` finds from ``T_1_2_init`` ``(4, 4)`` float64 (``None``
+    only for ``"global"``: no guess).
 
     ``timings``: seconds per stage are added to it (default: a new, discarded one).
     Raises ``MergeError`` for empty clouds (``"empty"``), no overlap (``"no_overlap"``) or
@@ -68,11 +74,14 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
         return register_dense(m1, m2, clouds, T_1_2_init, config, timings)
     if refine == "multi":
         return register_multi(m1, m2, clouds, T_1_2_init, config, timings)
+    if refine == "global":
+        return register_global(m1, m2, config, T_1_2_init, timings)
     overlap = overlap_for_icp(clouds, T_1_2_init, config, m1.resolution, timings)
     with timings.stage("icp") as stage:
         result = stage.ready(reg.icp(overlap.points_2, overlap.points_1, T_1_2_init,
                                      **icp_kwargs(config, m1.resolution)))
-    return register_icp(m1, m2, clouds, overlap, T_1_2_init, result, config, timings)
+    registration = register_icp(m1, m2, clouds, overlap, T_1_2_init, result, config, timings)
+    return judge_local(m1, m2, clouds, registration, timings)
 
 
 def register_none(clouds: Clouds, T_1_2_init) -> Registration:

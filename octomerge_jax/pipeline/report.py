@@ -48,6 +48,11 @@ class Registration:
     - ``points_1`` ``(n1, 3)``, ``points_2`` ``(n2, 3)``: float32 [m], the clouds registered
       (the overlap subsets, or the occupied clouds), each in its own map's frame.
     - ``warnings``: human-readable lines (ICP not converged, dense alignment failed, ...).
+    - ``confidence``: in [0, 1], how much the transform is to be trusted (``refine="global"``:
+      the margin of the best over the second-best distinct pose and the overlap explained;
+      ``None`` where not assessed). The merge's status is ``info["verdict"]`` when present.
+    - ``candidates``: the top distinct poses, best first, each a dict with at least
+      ``"T_1_2"`` (4x4 nested list) and ``"score"`` (share of the smaller map explained).
     """
 
     T_1_2: np.ndarray
@@ -58,6 +63,9 @@ class Registration:
     points_1: np.ndarray
     points_2: np.ndarray
     warnings: tuple[str, ...] = ()
+    # --- global
+    confidence: float | None = None
+    candidates: tuple = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,7 +75,8 @@ class MergeReport:
     - ``T_1_2_init``, ``T_1_2``: ``(4, 4)`` float64, the initial guess and the transform used
       (after refinement), mapping map 2's frame into map 1's [m].
     - ``T_1_2_true``: ground truth if given, else ``None``.
-    - ``refine``: ``"icp"``, ``"multi"``, ``"dense"``, ``"icp+dense"`` or ``"none"``.
+    - ``refine``: ``"icp"``, ``"multi"``, ``"dense"``, ``"icp+dense"``, ``"none"`` or ``"global"``
+      (then ``icp`` also holds ``verdict`` and ``global``: ``register_global``'s figures).
     - ``icp``: the ICP result as a dict (``converged``, ``status``, ``num_iterations``,
       ``num_inliers``, ``rmse`` [m], ``fitness``, ``correspondence_distance`` [m], ...; for
       ``"dense"`` the same keys for the dense alignment (status names ``str(Status)``,
@@ -120,10 +129,13 @@ class MergeReport:
     icp_result: object = dataclasses.field(default=None, repr=False, compare=False)
     points_1: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     points_2: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    # --- global
+    confidence: float | None = None
+    candidates: tuple = ()
 
     _JSON_FIELDS = ("status", "refine", "resolution", "T_1_2_init", "T_1_2", "T_1_2_true", "icp",
                     "epsilon_r_init", "epsilon_t_init", "epsilon_r", "epsilon_t", "displacement_init",
-                    "displacement", "counts", "timings", "warnings")
+                    "displacement", "counts", "timings", "warnings", "confidence", "candidates")
 
     def to_dict(self) -> dict:
         """JSON-ready dict (matrices as nested lists, row-major)."""
@@ -148,6 +160,9 @@ class MergeReport:
     def summary(self) -> str:
         """A few human-readable lines (what the CLI prints)."""
         lines = []
+        if self.status != "ok" or self.confidence is not None:
+            conf = "" if self.confidence is None else f", confidence {self.confidence:.2f}"
+            lines.append(f"status: {self.status}{conf}")
         if self.icp is not None:
             i = self.icp
             what = "dense alignment" if self.refine == "dense" else f"ICP ({self.refine})"

@@ -3,7 +3,8 @@ extraction, point-to-point ICP (jitted, differentiable), dense alignment of the 
 the correlation search over poses, rendezvous initial estimates, error metrics and one status
 vocabulary. The rigid-transform helpers are ``octomerge_jax.se3``'s, re-exported here.
 
-Submodules: ``points``, ``overlap``, ``neighbors``, ``_icp`` (private: the function ``icp`` is
+Submodules: ``points``, ``overlap``, ``neighbors``, ``features`` and ``global_search`` (pose
+candidates without a guess), ``_icp`` (private: the function ``icp`` is
 its public face), ``dense``, ``correlation``, ``evaluate``, ``metrics``, ``rendezvous``,
 ``status``.
 """

@@ -1,0 +1,291 @@
+"""Registration without an initial guess (``refine="global"``, the default of ``merge`` when no
+guess is given): ``register_global``; and the verdict on a local ICP result, ``judge_local``.
+
+::
+
+    occupied leaf centres ──coarse grid (one point per occupied coarse cell), normals
+        level each map by its floors; yaw peaks of the wall-normal histograms (each + pi)
+        per yaw: FFT cross-correlation of the coarse occupancy grids, less free-space
+                 conflicts ──> a few translations                ──> ~18 poses
+        net agreement on the coarse cells (agree - 3 x conflict, both directions)
+        ──> top distinct poses ──ICP on the commonly mapped subsets (thesis Alg. 2-3)
+        ──> net agreement again: best, second-best distinct pose ──> verdict, confidence
+
+Verdict (``Registration.info["verdict"]``, the merge's ``MergeReport.status``): ``"ok"``;
+``"ambiguous"`` when a distinct second pose agrees nearly as well (symmetric rooms,
+corridors) or the confidence is below ``MIN_CONFIDENCE`` (so little overlap that another
+placement, e.g. beside map 1 sharing a wall, is about as consistent); ``"no_overlap"`` when the best pose explains too little of the smaller map;
+``"failed"`` when its ICP did not end usable. Maps are assumed gravity-aligned to within a
+few degrees (``registration.global_search``). The thresholds are calibrated on the benchmark
+grid (``benchmarks/bench_global.py``); see
+``docs/design.md``, "Guess-free registration: measured choice".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from .. import registration as reg
+from .. import se3
+from ..map import OccupancyMap, bucket_capacity
+from ..registration import Status
+from ..registration.features import coarse_cloud, coarse_voxel_size, neighbor_pairs, normals
+from ..registration.global_search import (cell_sets, consistency_score, distinct_poses, free_points, level_rotation,
+                                                  pose_distance, rotation_z, translation_candidates, yaw_candidates)
+from .clouds import icp_info, icp_kwargs, occupied_clouds, overlap_margin, select_overlap
+from .config import MergeConfig
+from .report import MergeError, Registration
+from .timings import Timings
+
+__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MIN_CONFIDENCE", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS", "MIN_SHARED", "explained_fraction",
+           "judge_local", "register_global"]
+
+#: a distinct second pose whose net agreement is within this share of the best's: "ambiguous"
+AMBIGUOUS_GAP = 0.1
+#: the best pose explains less than this share of the smaller map's occupied points: "no_overlap"
+MIN_EXPLAINED = 0.12
+#: a coarse cell that puts surface into the other map's free space outweighs this many that agree
+CONFLICT_WEIGHT = 3.0
+#: coarse cells in agreement less CONFLICT_WEIGHT x those in conflict, over the smaller map's cells, below: "no_overlap"
+MIN_SHARED = 0.1
+#: below this confidence a result is not "ok": little overlap leaves other placements about as good
+MIN_CONFIDENCE = 0.3
+#: a local ICP result whose fitness (inliers over map 2's commonly mapped points) is below: "failed"
+MIN_LOCAL_FITNESS = 0.3
+_NORMAL_RADIUS = 2.0  # [coarse cells]
+_YAW_PEAKS, _TRANSLATION_PEAKS = 3, 3  # yaw peaks (each also turned by pi) x translation peaks per yaw
+_MAX_CORRELATION_CELLS = 1 << 21  # the correlation grid's cells (padded): its cell grows to fit
+_NUM_REFINED = 3  # distinct poses of the highest net agreement refined by ICP (all: see docs/design.md)
+
+
+def explained_fraction(points_1, points_2, T_1_2, distance: float, config: MergeConfig) -> tuple[int, float]:
+    """``(count, fraction)``: map 2's points ``points_2 (n2, 3)`` [m] placed by ``T_1_2`` that
+    lie within ``distance`` [m] of one of map 1's ``points_1 (n1, 3)``, and that count over
+    ``min(n1, n2)`` (the largest overlap the smaller map allows)."""
+    n = min(points_1.shape[0], points_2.shape[0])
+    if n == 0 or not np.all(np.isfinite(T_1_2)):
+        return 0, 0.0
+    st = reg.evaluate_registration(points_2, points_1, np.asarray(T_1_2, np.float64), distance,
+                                   cell_capacity=config.registration.cell_capacity)
+    k = int(st.num_inliers)
+    return k, k / n
+
+
+
+
+class _Refined(NamedTuple):
+    """One candidate after ICP (host values)."""
+
+    T_1_2: np.ndarray  # (4, 4) float64
+    result: object  # IcpResult or None (too little overlap to run ICP)
+    overlap: tuple  # (q1 (k1, 3), q2 (k2, 3)) float32 commonly mapped subsets [m]
+    index: int  # row of the coarse candidates
+
+
+def _pad(q, cap: int) -> np.ndarray:
+    return np.concatenate([q, np.zeros((cap - q.shape[0], 3), np.float32)])
+
+
+def _search_poses(m1, m2, p1, p2, resolution: float, timings: Timings):
+    """Coarse clouds, levelling, yaw and translation candidates (``registration.global_search``):
+    ``(c1, c2, poses (k, 4, 4) T_1_2, correlation scores (k,), info)``."""
+    with timings.stage("features"):
+        def cells(v):
+            return max(np.unique(np.floor(p / v).astype(np.int64), axis=0).shape[0] for p in (p1, p2))
+        v = coarse_voxel_size(cells, resolution)
+        c1, c2 = coarse_cloud(p1, v), coarse_cloud(p2, v)
+        n1, ok1 = normals(c1, neighbor_pairs(c1, _NORMAL_RADIUS * v))
+        n2, ok2 = normals(c2, neighbor_pairs(c2, _NORMAL_RADIUS * v))
+        L1, L2 = level_rotation(n1, ok1), level_rotation(n2, ok2)
+        yaws = yaw_candidates(n1 @ L1.T, ok1, n2 @ L2.T, ok2, num_peaks=_YAW_PEAKS)
+    a = c1.points @ L1.T
+    span = np.ptp(a, axis=0) + np.ptp(c2.points, axis=0) + 2 * v
+    v_corr = max(v, float(np.cbrt(np.prod(span) / _MAX_CORRELATION_CELLS)))
+    poses, scores = [], []
+    with timings.stage("correlation"):
+        f1 = free_points(m1, v_corr) @ L1.T
+        f2 = free_points(m2, v_corr)
+        for yaw in yaws:
+            R = rotation_z(yaw) @ L2
+            t, sc = translation_candidates(a, c2.points @ R.T, v_corr, f1, f2 @ R.T,
+                                           num_peaks=_TRANSLATION_PEAKS)
+            for ti, si in zip(t, sc):
+                T = np.eye(4)
+                T[:3, :3] = L1.T @ R
+                T[:3, 3] = L1.T @ ti
+                poses.append(T)
+                scores.append(float(si))
+    info = {"coarse_voxel": round(v, 4), "correlation_voxel": round(v_corr, 4),
+            "coarse_points": [int(c1.points.shape[0]), int(c2.points.shape[0])],
+            "yaws": [round(float(y), 4) for y in yaws], "poses": len(poses)}
+    return c1, c2, np.asarray(poses).reshape(-1, 4, 4), np.asarray(scores, np.float64), info
+
+
+def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | None = None,
+                    T_1_2_init=None, timings: Timings | None = None) -> Registration:
+    """The transform ``T_1_2`` (map 2's frame into map 1's) found without a guess, with a
+    verdict, a ``confidence`` and the top ``candidates`` (module docstring).
+
+    Args:
+      m1, m2: maps of one resolution.
+      config: ``MergeConfig`` (its ``registration`` section: ICP settings, ``overlap``,
+        ``min_overlap_points``); default ``MergeConfig()``.
+      T_1_2_init: ``(4, 4)``, optional: verified alongside the poses found (a guess narrows
+        the search; it is not needed).
+      timings: seconds per stage are added (``occupied_points``, ``features``, ``matching``,
+        ``hypotheses``, ``verify``, ``icp``).
+
+    Returns a ``Registration``: ``T_1_2`` the best pose after ICP (rigid), ``info`` ICP's
+    figures there plus ``verdict`` (``"ok"``, ``"ambiguous"``, ``"no_overlap"``,
+    ``"failed"``: the merge's status) and ``global`` (coarse voxel, counts, map losses,
+    the gap to the second-best distinct pose), ``confidence`` in [0, 1], ``candidates``
+    (``{"T_1_2": 4x4 list, "score": -map loss, "agreement", "explained"}``, best first).
+    Raises ``MergeError("empty")`` when a map has fewer than ``min_overlap_points`` occupied
+    voxels. Method: ``registration.global_search`` (orientation histograms and correlation,
+    Bosse and Zlot 2008), thesis Alg. 2-3 (overlap, ICP)."""
+    config = MergeConfig() if config is None else config
+    timings = Timings() if timings is None else timings
+    rc = config.registration
+    resolution = float(m1.resolution)
+    p1, p2 = occupied_clouds(m1, m2, timings)
+    for name, p in (("map 1", p1), ("map 2", p2)):
+        if p.shape[0] < rc.min_overlap_points:
+            raise MergeError(f"{name} has only {p.shape[0]} occupied voxels: nothing to register "
+                             "(use --refine none to merge with the guess as is)", "empty")
+    c1, c2, T_all, corr_scores, info_g = _search_poses(m1, m2, p1, p2, resolution, timings)
+    v = info_g["coarse_voxel"]
+    if T_1_2_init is not None:
+        T_all = np.concatenate([T_all, np.asarray(T_1_2_init, np.float64)[None]])
+    counts = {"occupied_1": int(p1.shape[0]), "occupied_2": int(p2.shape[0])}
+    if T_all.shape[0] == 0:
+        return _nothing(p1, p2, T_1_2_init, counts, info_g)
+    extent = max(float(np.linalg.norm(np.ptp(c2.points, axis=0))) / 2.0, v)
+    with timings.stage("verify"):
+        s1 = cell_sets(p1, free_points(m1, v), v)
+        s2 = cell_sets(p2, free_points(m2, v), v)
+        screened = np.array([_score(s1, s2, T) for T in T_all], np.float64)
+        picked = distinct_poses(T_all, screened, extent, 2.0 * v, _NUM_REFINED)
+    refined = [_refine(p1, p2, T_all[i], int(i), config, resolution, timings) for i in picked]
+    with timings.stage("verify"):
+        agree_conflict = [consistency_score(s1, s2, r.T_1_2) for r in refined]
+        final = np.array([a - CONFLICT_WEIGHT * c for a, c in agree_conflict], np.float64)
+    rank = np.argsort(-final, kind="stable")
+    i_best = int(rank[0])
+    best = refined[i_best]
+    seconds = [int(j) for j in rank[1:] if pose_distance(refined[j].T_1_2, best.T_1_2, extent) >= 2.0 * v]
+    top_score = max(final[i_best], 1.0)
+    gap = float((final[i_best] - final[seconds[0]]) / top_score) if seconds else 1.0
+    agree, conflict = agree_conflict[i_best]
+    cells = min(s1.occupied.codes.shape[0], s2.occupied.codes.shape[0])
+    shared = float(final[i_best]) / max(cells, 1)  # share of the smaller map's cells explained, net of conflicts
+    with timings.stage("verify"):
+        n_in, explained = explained_fraction(p1, p2, best.T_1_2, 2.0 * resolution, config)
+    usable = best.result is not None and Status(int(best.result.status)).usable
+    if shared < MIN_SHARED or explained < MIN_EXPLAINED:
+        verdict = "no_overlap"
+    elif not usable:
+        verdict = "failed"
+    else:
+        confidence = _confidence(gap, shared)
+        verdict = "ok" if gap >= AMBIGUOUS_GAP and confidence >= MIN_CONFIDENCE else "ambiguous"
+    confidence = _confidence(gap, shared)
+    info_g.update(cells=[int(s1.occupied.codes.shape[0]), int(s2.occupied.codes.shape[0])],
+                  screened=[round(float(x), 1) for x in screened[picked]], agree=agree, conflict=conflict,
+                  shared=round(shared, 4), explained=round(explained, 4), explained_points=n_in, gap=round(gap, 4))
+    info = {**(icp_info(best.result) if best.result is not None else _no_icp()), "verdict": verdict, "global": info_g}
+    candidates = tuple({"T_1_2": np.asarray(refined[j].T_1_2).tolist(),
+                        "score": round(float(final[j]) / max(cells, 1), 5), "agree": agree_conflict[j][0],
+                        "conflict": agree_conflict[j][1]} for j in [i_best, *seconds])
+    q1, q2 = best.overlap
+    counts.update(overlap_1=int(q1.shape[0]), overlap_2=int(q2.shape[0]))
+    warnings = () if verdict == "ok" else (_MESSAGES[verdict].format(frac=explained, gap=gap, shared=shared),)
+    return Registration(T_1_2=best.T_1_2, converged=bool(info["converged"]), info=info, result=best.result,
+                        counts=counts, points_1=q1, points_2=q2, warnings=warnings, confidence=confidence,
+                        candidates=candidates)
+
+
+def _score(s1, s2, T) -> float:
+    a, c = consistency_score(s1, s2, T)
+    return float(a - CONFLICT_WEIGHT * c)
+
+
+def _confidence(gap: float, shared: float) -> float:
+    """In [0, 1]: the margin over the second-best distinct pose (saturating at 4x the
+    ambiguity gap) times how far the net shared share clears its no-overlap bound (saturating
+    at 3x)."""
+    margin = np.clip(gap / (4.0 * AMBIGUOUS_GAP), 0.0, 1.0)
+    share = np.clip((shared - MIN_SHARED) / (2.0 * MIN_SHARED), 0.0, 1.0)
+    return float(margin * share)
+
+
+def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timings: Timings) -> _Refined:
+    """ICP on the commonly mapped subsets under ``T`` (padded to the full clouds' capacities:
+    one compiled ICP per pair), the result made rigid when usable."""
+    rc = config.registration
+    q1, q2 = select_overlap(p1, p2, T, rc.overlap, overlap_margin(config, resolution))
+    if min(q1.shape[0], q2.shape[0]) < rc.min_overlap_points:
+        return _Refined(np.asarray(T, np.float64), None, (q1, q2), index)
+    cap1, cap2 = bucket_capacity(p1.shape[0]), bucket_capacity(p2.shape[0])
+    with timings.stage("icp") as stage:
+        r = stage.ready(reg.icp(_pad(q2, cap2), _pad(q1, cap1), np.asarray(T, np.float64), source_count=q2.shape[0],
+                                target_count=q1.shape[0], **icp_kwargs(config, resolution)))
+    r = jax.tree_util.tree_map(np.asarray, r)
+    T_icp = np.asarray(r.T_target_source, np.float64)
+    if Status(int(r.status)).usable and np.all(np.isfinite(T_icp)):
+        T = se3.project_to_rigid(T_icp)
+    return _Refined(np.asarray(T, np.float64), r, (q1, q2), index)
+
+
+def _no_icp() -> dict:
+    return {"converged": False, "status": str(Status.TOO_FEW_INLIERS), "num_iterations": 0, "num_inliers": 0,
+            "rmse": float("nan"), "fitness": 0.0, "correspondence_distance": float("nan")}
+
+
+def _nothing(p1, p2, T_1_2_init, counts, info_g) -> Registration:
+    T0 = np.eye(4) if T_1_2_init is None else np.asarray(T_1_2_init, np.float64)
+    return Registration(T_1_2=T0, converged=False, info={**_no_icp(), "verdict": "no_overlap", "global": info_g},
+                        result=None, counts=counts, points_1=p1, points_2=p2,
+                        warnings=("no overlap found: no consistent correspondences between the maps",),
+                        confidence=0.0, candidates=())
+
+
+_MESSAGES = {
+    "no_overlap": "no overlap found: the best pose explains {frac:.0%} of the smaller map's occupied voxels "
+                  "(net agreement {shared:.0%} of its coarse cells)",
+    "ambiguous": "ambiguous: a distinct second pose agrees with map 1 nearly as well (within {gap:.1%}; "
+                 "symmetric scene?); give a guess (--xyz/--rpy) to choose",
+    "failed": "registration failed: ICP from the best pose did not end usable",
+}
+
+
+def judge_local(m1: OccupancyMap, m2: OccupancyMap, clouds, registration: Registration,
+                timings: Timings | None = None) -> Registration:
+    """The verdict on a local registration (``refine="icp"`` from a guess): ``"failed"`` when
+    ICP ended in a wrong basin: its fitness is below ``MIN_LOCAL_FITNESS``, or on the coarse
+    grid of ``register_global`` the map-2 surfaces it puts into map 1's free space (and back)
+    outweigh the agreeing ones (``agree - CONFLICT_WEIGHT * conflict <= 0``). Returns
+    ``registration`` with ``info["verdict"]`` and ``info["consistency"]`` set and, on
+    failure, a warning."""
+    info = registration.info
+    if info is None:
+        return registration
+    timings = Timings() if timings is None else timings
+    p1, p2 = clouds
+    v = coarse_voxel_size(lambda v: 0, m1.resolution)
+    with timings.stage("verify"):
+        agree, conflict = consistency_score(cell_sets(p1, free_points(m1, v), v), cell_sets(p2, free_points(m2, v), v),
+                                            registration.T_1_2)
+    fitness = float(info.get("fitness", 0.0))
+    bad = fitness < MIN_LOCAL_FITNESS or agree - CONFLICT_WEIGHT * conflict <= 0
+    info = {**info, "verdict": "failed" if bad else "ok",
+            "consistency": {"voxel": round(v, 4), "agree": agree, "conflict": conflict}}
+    warnings = registration.warnings
+    if bad:
+        warnings = (*warnings, f"registration failed: ICP ended in a wrong basin (fitness {fitness:.2f}, "
+                               f"{conflict} coarse cells in the other map's free space against {agree} agreeing); "
+                               "merge without a guess (refine \"global\") or give a better guess")
+    return dataclasses.replace(registration, info=info, warnings=warnings)

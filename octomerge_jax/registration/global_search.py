@@ -1,0 +1,237 @@
+"""Pose candidates without an initial guess for maps whose vertical axes roughly agree
+(gravity-aligned OctoMaps, a few degrees of roll / pitch): level each map by its horizontal
+surfaces, the relative yaw from the histograms of wall-normal directions, and the translation
+by a 3-D cross-correlation of the coarse occupancy grids (FFT), a few peaks per yaw.
+
+- ``level_rotation``: the rotation taking the mean normal of the near-horizontal surfaces
+  (floors, ceilings, tables) to +z.
+- ``yaw_candidates``: wall normals' directions modulo pi, histogrammed at 1 degree and
+  circularly correlated between the maps (FFT); each peak gives a yaw and its turn by pi
+  (normals carry no sign), so a rectangular room's 180-degree twin is always a candidate and
+  is left to the verification by free space to reject.
+- ``translation_candidates``: the occupied coarse cells of both maps as 0/1 grids, their
+  cross-correlation by FFT, the highest peaks (non-maximum suppressed): overlapping surface
+  cells per translation.
+
+The idea is the classic one of rotation from orientation histograms and translation from
+phase-free correlation (e.g. Bosse and Zlot, "Map matching and data association for large-scale
+two-dimensional laser scan-based SLAM", IJRR 2008); see
+``docs/design.md``, "Guess-free registration: measured choice". Host NumPy: a few thousand coarse points and FFTs of at most
+a few million cells.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from ..map import OccupancyMap
+from .features import CoarseCloud, cell_codes, coarse_cloud
+
+__all__ = ["CellSets", "cell_sets", "consistency_score", "distinct_poses", "free_points", "level_rotation",
+           "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates"]
+
+_YAW_BINS = 180  # over [0, pi): 1 degree
+
+
+def rotation_z(yaw_rad: float) -> np.ndarray:
+    """``(3, 3)`` float64 rotation about +z by ``yaw_rad``."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def level_rotation(normals, valid, max_tilt_rad: float = 0.35) -> np.ndarray:
+    """``(3, 3)`` float64 rotation taking the mean of the unit ``normals (m, 3)`` (rows with
+    ``valid (m,)``) within ``max_tilt_rad`` of +-z (signs folded to +z) onto +z; the identity
+    when fewer than 20 such normals exist."""
+    n = np.asarray(normals, np.float64)[np.asarray(valid, bool)]
+    n = n * np.where(n[:, 2:3] < 0, -1.0, 1.0)
+    up = n[n[:, 2] >= np.cos(max_tilt_rad)]
+    if up.shape[0] < 20:
+        return np.eye(3)
+    u = up.mean(axis=0)
+    u /= np.linalg.norm(u)
+    axis = np.cross(u, [0.0, 0.0, 1.0])
+    s, c = np.linalg.norm(axis), u[2]
+    if s < 1e-12:
+        return np.eye(3)
+    k = axis / s
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * K + (1 - c) * K @ K
+
+
+def _wall_histogram(normals, valid, max_vertical: float = 0.3) -> np.ndarray:
+    n = np.asarray(normals, np.float64)[np.asarray(valid, bool)]
+    n = n[np.abs(n[:, 2]) <= max_vertical]
+    ang = np.mod(np.arctan2(n[:, 1], n[:, 0]), np.pi)
+    h = np.bincount(np.minimum((ang / np.pi * _YAW_BINS).astype(np.int64), _YAW_BINS - 1),
+                    minlength=_YAW_BINS).astype(np.float64)
+    # a circular [1 2 1] blur: neighbours of a bin share its walls
+    return 2 * h + np.roll(h, 1) + np.roll(h, -1)
+
+
+def yaw_candidates(normals_1, valid_1, normals_2, valid_2, num_peaks: int = 3,
+                   min_separation_rad: float = np.deg2rad(8.0)) -> np.ndarray:
+    """Yaws [rad] ``(2 k,)`` turning map 2's (levelled) wall normals onto map 1's: the ``k <=
+    num_peaks`` highest peaks of the circular correlation of their direction histograms
+    (modulo pi, 1 degree bins), at least ``min_separation_rad`` apart, each with its turn by
+    pi; best peak first. Empty when either map has no near-vertical surface."""
+    h1, h2 = _wall_histogram(normals_1, valid_1), _wall_histogram(normals_2, valid_2)
+    if h1.sum() == 0 or h2.sum() == 0:
+        return np.zeros(0)
+    # corr[s] = sum_i h1[i] h2[i - s]: map 2 turned by s bins matches map 1
+    corr = np.fft.irfft(np.fft.rfft(h1) * np.conj(np.fft.rfft(h2)), n=_YAW_BINS)
+    order = np.argsort(-corr, kind="stable")
+    sep = int(round(min_separation_rad / np.pi * _YAW_BINS))
+    kept: list[int] = []
+    for s in order:
+        if all(min(abs(s - t), _YAW_BINS - abs(s - t)) >= sep for t in kept):
+            kept.append(int(s))
+            if len(kept) == num_peaks:
+                break
+    yaws = np.asarray(kept, np.float64) * np.pi / _YAW_BINS
+    return np.stack([yaws, yaws + np.pi], axis=1).reshape(-1)
+
+
+def _grid(points, voxel: float, lo: np.ndarray, shape) -> np.ndarray:
+    g = np.zeros(shape, np.float32)
+    k = np.floor(points / voxel).astype(np.int64) - lo
+    g[k[:, 0], k[:, 1], k[:, 2]] = 1.0
+    return g
+
+
+def _free_grid(points, occupied, voxel: float, lo: np.ndarray) -> np.ndarray:
+    """1 in the free cells of the grid of ``occupied`` (those without occupied weight)."""
+    g = np.zeros(occupied.shape, np.float32)
+    k = np.floor(np.asarray(points, np.float64) / voxel).astype(np.int64) - lo
+    inside = np.all((k >= 0) & (k < np.asarray(occupied.shape)), axis=1)
+    k = k[inside]
+    g[k[:, 0], k[:, 1], k[:, 2]] = 1.0
+    return np.where(occupied > 0, 0.0, g).astype(np.float32)
+
+
+def free_points(m: OccupancyMap, voxel: float, max_points: int = 4_000_000) -> np.ndarray:
+    """Points ``(k, 3)`` float64 [m] filling the map's free leaves (log-odds below the
+    occupancy threshold) at about one per cell of ``voxel`` [m]: a leaf's centre, or for a
+    leaf larger than ``voxel`` the centres of its ``round(size / voxel)^3`` sub-cells. Raises
+    ``ValueError`` above ``max_points`` points."""
+    L = m.leaves()
+    free = L.log_odds < m.params.occupancy_threshold_log_odds
+    centers, sizes = L.centers[free], L.sizes[free]
+    out = []
+    for size in np.unique(sizes):
+        c = centers[sizes == size]
+        k = max(1, int(round(size / voxel)))
+        if c.shape[0] * k ** 3 > max_points:
+            raise ValueError(f"free space of {c.shape[0] * k ** 3} cells of {voxel:g} m exceeds {max_points}")
+        g = (np.arange(k) + 0.5) * (size / k) - size / 2
+        off = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+        out.append((c[:, None, :] + off[None]).reshape(-1, 3))
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2=None, num_peaks: int = 3, min_separation_cells: int = 3,
+                           max_cells: int = 1 << 23):
+    """Translations ``t (k, 3)`` [m] that place ``points_2 (n2, 3)`` onto ``points_1 (n1, 3)``
+    (both [m], one orientation) with the most occupied coarse cells (edge ``voxel`` [m]) in
+    common, less
+    the occupied cells of one map that land in the other's free space (``free_* (f, 3)`` [m],
+    in the same frames, optional; ``free_points``), and those scores ``(k,)``: the ``k <= num_peaks`` highest peaks of the grids'
+    cross-correlation (FFT), at least ``min_separation_cells`` apart (Chebyshev), best first.
+    Raises ``ValueError`` when the padded grid would exceed ``max_cells`` cells."""
+    points_1 = np.asarray(points_1, np.float64).reshape(-1, 3)
+    points_2 = np.asarray(points_2, np.float64).reshape(-1, 3)
+    c1, c2 = coarse_cloud(points_1, voxel), coarse_cloud(points_2, voxel)
+    lo1, lo2 = c1.keys.min(axis=0), c2.keys.min(axis=0)
+    s1 = c1.keys.max(axis=0) - lo1 + 1
+    s2 = c2.keys.max(axis=0) - lo2 + 1
+    shape = tuple(int(x) for x in s1 + s2)
+    if int(np.prod(shape)) > max_cells:
+        raise ValueError(f"correlation grid of {shape} cells of {voxel:g} m exceeds {max_cells} cells")
+    o1, o2 = _grid(points_1, voxel, lo1, tuple(s1)), _grid(points_2, voxel, lo2, tuple(s2))
+    g1, g2 = np.fft.rfftn(o1, shape, axes=(0, 1, 2)), np.fft.rfftn(o2, shape, axes=(0, 1, 2))
+    # corr[d] = sum_x g1[x + d] g2[x]: map 2's cell x lands on map 1's cell x + d
+    spec = g1 * np.conj(g2)
+    if free_1 is not None:
+        spec -= np.fft.rfftn(_free_grid(free_1, o1, voxel, lo1), shape, axes=(0, 1, 2)) * np.conj(g2)
+    if free_2 is not None:
+        spec -= g1 * np.conj(np.fft.rfftn(_free_grid(free_2, o2, voxel, lo2), shape, axes=(0, 1, 2)))
+    corr = np.fft.irfftn(spec, shape, axes=(0, 1, 2))
+    flat = np.argsort(-corr, axis=None)[: 64 * num_peaks]
+    shifts, scores = [], []
+    for f in flat:
+        # shifts run over (-s2, s1): indices from s1 on are negative shifts, wrapped
+        d = np.array(np.unravel_index(f, shape))
+        d = np.where(d >= s1, d - np.asarray(shape), d)
+        if all(np.max(np.abs(d - e)) >= min_separation_cells for e in shifts):
+            shifts.append(d)
+            scores.append(float(corr.flat[f]))
+            if len(shifts) == num_peaks:
+                break
+    d = np.asarray(shifts, np.int64).reshape(-1, 3)
+    # cell lo2 + j of map 2 lands on cell lo1 + j + d of map 1
+    t = (d + lo1 - lo2).astype(np.float64) * voxel
+    return t, np.asarray(scores, np.float64)
+
+
+class CellSets(NamedTuple):
+    """A map's occupied and free cells on a coarse grid (``cell_sets``)."""
+
+    occupied: CoarseCloud  # one point per occupied cell (centroids, sorted codes)
+    free_codes: np.ndarray  # (f,) int64 sorted codes of free cells that hold no occupied point
+
+
+def cell_sets(points, free, voxel: float) -> CellSets:
+    """``CellSets`` of occupied ``points (n, 3)`` and free-space points ``free (f, 3)`` [m]
+    (``free_points``) on a grid of ``voxel`` [m]."""
+    occ = coarse_cloud(points, voxel)
+    codes = np.unique(cell_codes(np.floor(np.asarray(free, np.float64) / voxel).astype(np.int64)))
+    return CellSets(occ, codes[~np.isin(codes, occ.codes)])
+
+
+def _member(sorted_codes, codes) -> np.ndarray:
+    if sorted_codes.shape[0] == 0:
+        return np.zeros(codes.shape, bool)
+    j = np.minimum(np.searchsorted(sorted_codes, codes), sorted_codes.shape[0] - 1)
+    return sorted_codes[j] == codes
+
+
+def consistency_score(s1: CellSets, s2: CellSets, T_1_2) -> tuple[int, int]:
+    """``(agree, conflict)`` of map 2's cells placed by ``T_1_2 (4, 4)`` in map 1's frame
+    (both ``CellSets`` of one voxel): occupied cells of map 2 landing in occupied cells of map
+    1, and occupied cells of either map landing in the other's free cells (both directions):
+    the measure the translation correlation maximises (``agree - conflict``), at any pose."""
+    T = np.asarray(T_1_2, np.float64)
+    v = s1.occupied.voxel
+    q = s2.occupied.points @ T[:3, :3].T + T[:3, 3]
+    c = cell_codes(np.floor(q / v).astype(np.int64))
+    agree = int(_member(s1.occupied.codes, c).sum())
+    conflict = int(_member(s1.free_codes, c).sum())
+    Ti = np.linalg.inv(T)
+    r = s1.occupied.points @ Ti[:3, :3].T + Ti[:3, 3]
+    conflict += int(_member(s2.free_codes, cell_codes(np.floor(r / v).astype(np.int64))).sum())
+    return agree, conflict
+
+
+def pose_distance(T_a, T_b, length: float) -> np.ndarray:
+    """A distance between poses: rotation angle [rad] x ``length`` [m] + translation [m]
+    (broadcast over leading axes)."""
+    Ra, Rb = np.asarray(T_a)[..., :3, :3], np.asarray(T_b)[..., :3, :3]
+    c = (np.einsum("...ij,...ij->...", Ra, Rb) - 1.0) / 2.0
+    ang = np.arccos(np.clip(c, -1.0, 1.0))
+    dt = np.linalg.norm(np.asarray(T_a)[..., :3, 3] - np.asarray(T_b)[..., :3, 3], axis=-1)
+    return ang * length + dt
+
+
+def distinct_poses(T, scores, length: float, min_distance: float, k: int) -> np.ndarray:
+    """Indices of up to ``k`` poses of ``T (h, 4, 4)``, highest ``scores (h,)`` first, no two
+    closer than ``min_distance`` by ``pose_distance(., ., length)``."""
+    order = np.argsort(-np.asarray(scores, np.float64), kind="stable")
+    kept: list[int] = []
+    for i in order:
+        if all(pose_distance(T[i], T[j], length) >= min_distance for j in kept):
+            kept.append(int(i))
+            if len(kept) == k:
+                break
+    return np.asarray(kept, np.int64)
