@@ -106,7 +106,8 @@ def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine
       config: all other parameters (``MergeConfig``).
       max_pairs_per_map: without guesses and from 7 maps on, each map's this many most similar
         maps (coarse descriptor) are registered (``None``: every pair).
-      min_confidence: measurements below it are not used (``why="low_confidence"``).
+      min_confidence: measurements below it are not used (``why="low_confidence"``), nor those
+        whose registration ended other than ``"ok"`` (``why="registration ambiguous"``, ...).
       prior_sigma_m, prior_sigma_rad: standard deviations of a guess as a prior [m], [rad].
       kernel, max_chi2: the pose graph's robust kernel and rejection threshold
         (``registration.posegraph.solve_robust``).
@@ -149,7 +150,8 @@ def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine
                 continue
             edges.append(dict(i=i, j=j, kind="registration", T=meas.T_i_j, info=meas.information,
                               conf=meas.confidence, figures=meas.registration.info,
-                              why="" if meas.confidence >= min_confidence else "low_confidence",
+                              why=("" if meas.verdict == "ok" else f"registration {meas.verdict}")
+                              or ("" if meas.confidence >= min_confidence else "low_confidence"),
                               seconds=time.perf_counter() - t0, reg=meas.registration))
     guess_kind = "guess" if cfg.registration.refine == "none" else "prior"
     prior_info = np.diag([prior_sigma_m ** -2.0] * 3 + [prior_sigma_rad ** -2.0] * 3)

@@ -2,8 +2,9 @@
 occupancy descriptor), and one pairwise measurement for the pose graph (``measure_pair``: the
 transform, its information matrix from the point-to-point Hessian, and a confidence).
 
-``measure_pair`` is the one place that calls the pairwise registration; it uses
-``refine.register`` (``refine="multi"`` without a guess, the configured mode with one).
+``measure_pair`` is the one place that calls the pairwise registration: ``register_global``
+without a guess (its verdict and confidence), ``refine.register`` in the configured mode from
+a guess.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from .. import registration as reg
 from ..map import OccupancyMap
 from .clouds import select_overlap
 from .config import MergeConfig
+from .globalreg import register_global
 from .refine import register
 from .report import MergeError, Registration
 from .timings import Timings
@@ -33,8 +35,9 @@ class PairMeasurement(NamedTuple):
 
     T_i_j: np.ndarray  # (4, 4) float64: map j's frame into map i's [m]
     information: np.ndarray  # (6, 6) float64: (v [1/m^2], omega [1/rad^2]), right perturbation
-    confidence: float  # in [0, 1]: inlier fraction times (1 - rmse / correspondence distance)
+    confidence: float  # in [0, 1]: the registration's own, else inlier fraction x (1 - rmse / distance)
     registration: Registration  # the registration step's outcome (its figures under ``info``)
+    verdict: str  # "ok", "ambiguous", "no_overlap" or "failed" (the registration's status)
 
 
 def alignment_information(points_i, points_j, T_i_j, distance_m: float, sigma_m: float) -> tuple[np.ndarray, int]:
@@ -68,15 +71,17 @@ def measure_pair(m_i: OccupancyMap, m_j: OccupancyMap, T_i_j_init, config: Merge
 
     Args:
       T_i_j_init: ``(4, 4)`` start (identity when ``guess_free``).
-      guess_free: ``True``: ``refine="multi"`` (the multi-hypothesis search over yaw and
-        translation, no guess needed); ``False``: ``config.registration.refine`` from the guess.
+      guess_free: ``True``: ``register_global`` (no guess needed); ``False``:
+        ``config.registration.refine`` from the guess.
 
     Returns a ``PairMeasurement``. Raises ``MergeError`` as ``register`` (no overlap, too few
     inliers, ...)."""
-    cfg = config.replace(registration={"refine": "multi"}) if guess_free else config
-    if cfg.registration.refine == "none":
-        raise MergeError("measure_pair needs a registration (refine is 'none')", "transform")
-    r = register(m_i, m_j, np.asarray(T_i_j_init, np.float64), cfg, timings)
+    if guess_free:
+        r = register_global(m_i, m_j, config=config, timings=timings)
+    else:
+        if config.registration.refine == "none":
+            raise MergeError("measure_pair needs a registration (refine is 'none')", "transform")
+        r = register(m_i, m_j, np.asarray(T_i_j_init, np.float64), config, timings)
     res = float(m_i.resolution)
     info = r.info or {}
     d = float(info.get("correspondence_distance", 2 * res))
@@ -86,7 +91,9 @@ def measure_pair(m_i: OccupancyMap, m_j: OccupancyMap, T_i_j_init, config: Merge
     Omega, n = alignment_information(r.points_1, r.points_2, r.T_1_2, d, sigma)
     fitness = n / max(int(np.asarray(r.points_2).shape[0]), 1)
     conf = float(np.clip(fitness * (1.0 - min(rmse if np.isfinite(rmse) else d, d) / d), 0.0, 1.0))
-    return PairMeasurement(np.asarray(r.T_1_2, np.float64), Omega, conf, r)
+    if r.confidence is not None:
+        conf = float(r.confidence)
+    return PairMeasurement(np.asarray(r.T_1_2, np.float64), Omega, conf, r, str(info.get("verdict", "ok")))
 
 
 def describe_map(m: OccupancyMap, cell_m: float = DESCRIPTOR_CELL_M) -> np.ndarray:
