@@ -209,15 +209,22 @@ def test_merge_many_star_and_chain():
         merge_many([m1, m2, m3], pairs={(0, 1): T, (0, 2): T, (1, 2): T})
 
 
-def test_icp_trace_matches_icp(merged_icp):
+def test_icp_trace_is_the_reported_run(merged_icp):
+    """The convergence figure's trace is the run the report gives: the same iterations, ending
+    at the reported ICP transform exactly; a different run is refused."""
     _, rep = merged_icp
-    tr = icp_trace(rep.points_1, rep.points_2, rep.T_1_2_init, RES, T_1_2_true=T_TRUE)
-    assert tr["T_1_2"].shape == (len(tr["rmse"]) + 1, 4, 4)
-    # the replay follows the same schedule; float rounding of the host loop can change
-    # discrete correspondences, so compare quality rather than the exact end point
-    assert tr["epsilon_r"][-1] < 0.15 and tr["epsilon_t"][-1] < 0.5
+    tr = icp_trace(rep.points_1, rep.points_2, rep.T_1_2_init, RES, T_1_2_true=T_TRUE, result=rep.icp_result)
+    K = rep.icp["num_iterations"]
+    assert tr["num_iterations"] == K and tr["status"] == rep.icp["status"]
+    assert tr["T_1_2"].shape == (K + 1, 4, 4) and len(tr["rmse"]) == len(tr["distance"]) == K
+    np.testing.assert_array_equal(tr["T_1_2"][-1], np.asarray(rep.icp_result.T_target_source, np.float64))
+    np.testing.assert_array_equal(tr["T_1_2"][0], rep.T_1_2_init)
+    assert np.all(np.isfinite(tr["T_1_2"])) and np.all(tr["num_inliers"] > 0)
     assert tr["epsilon_r"][0] == pytest.approx(rep.epsilon_r_init, rel=1e-5)
-    assert tr["rmse"][-1] <= tr["rmse"][0]
+    # the stage distance only shrinks, 10 res down to 2 res
+    assert np.all(np.diff(tr["distance"]) <= 0) and tr["distance"][-1] == pytest.approx(2 * RES)
+    with pytest.raises(ValueError, match="not the reported one"):
+        icp_trace(rep.points_1, rep.points_2, perturbed(dyaw=0.05), RES, result=rep.icp_result)
 
 
 def test_merge_with_symmetric_coarse_matching(merged_icp):
