@@ -196,11 +196,16 @@ def write_figures(report, merged, figure, map_figure, icp_figure, cfg, truth=Non
     if map_figure is not None:
         plot_map(merged, map_figure, title="merged map (map 1 frame)")
     if icp_figure is not None:
-        if report.icp is None:
-            print("octomerge merge: warning: --icp-figure needs ICP (refine is none); skipped",
+        if report.icp is None or report.refine == "dense":
+            print(f"octomerge merge: warning: --icp-figure needs ICP (refine is {report.refine}); skipped",
                   file=sys.stderr)
         else:
-            plot_icp_convergence(_reported_trace(report, cfg, truth), icp_figure)
+            try:
+                trace = _reported_trace(report, cfg, truth)
+            except ValueError as err:  # the run could not be reproduced: no figure of another run
+                print(f"octomerge merge: warning: {err}; --icp-figure skipped", file=sys.stderr)
+            else:
+                plot_icp_convergence(trace, icp_figure)
 
 
 def _reported_trace(report, cfg, truth) -> dict:
