@@ -118,7 +118,7 @@ def test_dump_config_round_trip(tmp_path, capsys):
     assert main(["dump-config"]) == 0
     text = capsys.readouterr().out
     data = tomllib.loads(text)
-    assert data["registration"]["refine"] == "icp" and data["fuse"]["rule"] == "sum"
+    assert data["registration"]["refine"] == "icp+dense" and data["fuse"]["rule"] == "sum"  # the default
     (tmp_path / "c.toml").write_text(text.replace('rule = "sum"', 'rule = "max"'))
     assert main(["dump-config", "--config", str(tmp_path / "c.toml"), "--json",
                  "--out", str(tmp_path / "c.json")]) == 0

@@ -167,7 +167,8 @@ def test_bad_inputs_raise_with_kind():
 
 def test_not_converged_policy():
     m1, m2, T = small_pair()
-    cfg = MergeConfig().replace(registration={"max_iterations": 3})
+    # ICP's own policy: refine="icp" (with "icp+dense" the dense step moves even the guess)
+    cfg = MergeConfig().replace(registration={"max_iterations": 3, "refine": "icp"})
     _, rep = merge(m1, m2, perturbed(), config=cfg)
     assert rep.status == "not_converged" and rep.icp["num_iterations"] == 3
     assert any("did not converge" in w for w in rep.warnings)
@@ -286,7 +287,7 @@ def test_report_is_frozen_and_summary(merged_icp):
     with pytest.raises(dataclasses.FrozenInstanceError):
         rep.status = "x"
     s = rep.summary()
-    assert "epsilon_r" in s and "ICP (icp): converged" in s
+    assert "epsilon_r" in s and "ICP (icp+dense): converged" in s  # the default refinement
 
 
 def test_refine_dense_reports_like_icp():
