@@ -2,7 +2,7 @@
 batched over pairs or initial guesses, and differentiable by implicit differentiation at the
 fixed point. Anderson-accelerated (Walker & Ni 2011; AA-ICP, Pavlov et al. 2018).
 
-Modules: ``_single`` (``icp``, ``icp_padded``, ``icp_padded_stack``), ``_multi``
+Modules: ``_single`` (``icp``, ``icp_padded``, ``icp_padded_stack``, ``icp_with_path``), ``_multi``
 (``icp_multi``), ``_loop`` (the iteration and its typed state), ``_kabsch`` (the closed-form
 step and the implicit derivative), ``_anderson``, ``_schedule`` (stages, table sizes,
 hypotheses), ``_coarse`` (coarse query clouds), ``_centred``, ``_host``, ``_result``.
