@@ -6,6 +6,7 @@ Table-7.1-style grid of eps_r / eps_t before and after ICP for bbox vs voxel ove
     .venv/bin/python benchmarks/bench_icp.py --res 0.1 0.05  # ~45k / ~180k points
     .venv/bin/python benchmarks/bench_icp.py --skip-grid --multi 12 36 64
     .venv/bin/python benchmarks/bench_icp.py --skip-sizes --skip-grid --multi --global-res 0.2 0.1
+    .venv/bin/python benchmarks/bench_icp.py --skip-sizes --skip-grid --multi --scenes lab office campus
 
 Peers run the schedule the issue measured them with: 10 res then 2 res, 50 iterations each.
 Single pairs are compared over ``--starts`` initial guesses per resolution (errors at the voxel
@@ -322,6 +323,41 @@ def bench_grid(res, z_max):
           ", ".join(f"{k} {v}/{len(TABLE_7_1)}" for k, v in ok.items()))
 
 
+SCENE_RES = {"lab": 0.1, "office": 0.1, "campus": 0.2}
+
+
+def bench_scenes(scenes, repeats):
+    """The default local refinement on the demo's simulated pairs (``sim.make_two_robot_maps``):
+    ``refine="icp"`` (before) against the default ``"icp+dense"`` (after) from the truth, the
+    demo's guess (0.4 / -0.3 m, 0.05 rad yaw) and a guess 0.3 m / 0.1 rad off; error = mean
+    displacement of map 2's occupied voxels [m] (``MergeReport.displacement``); time = the
+    registration's stages (``icp`` + ``dense`` + ``evaluate``), warm, median of ``repeats``."""
+    from octomerge_jax.pipeline import merge
+    from octomerge_jax.sim import make_two_robot_maps
+
+    print(f"\n## default local refinement on the simulated scenes (warm, median of {repeats}); error = mean "
+          "displacement of map 2's occupied voxels [m]; 'quarter' = res / 4")
+    print(f"{'scene':>7} {'res':>4} {'start':>12} {'start err':>9} | {'icp err':>8} {'it':>4} {'s':>6} | "
+          f"{'icp+dense err':>13} {'s':>6} | {'quarter':>7}")
+    for scene in scenes:
+        res = SCENE_RES[scene]
+        m1, m2, T = make_two_robot_maps(scene, res)
+        x, y, z, ro, pi, ya = se3.to_xyz_rpy(T, xp=np)
+        starts = {"truth": T, "demo": xyz_rpy64(x + 0.4, y - 0.3, z, ro, pi, ya + 0.05),
+                  "0.3m/0.1rad": xyz_rpy64(0.18, -0.24, 0.0, 0.0, 0.0, 0.1) @ T}
+        for name, T0 in starts.items():
+            row = []
+            for refine in ("icp", "icp+dense"):
+                times = []
+                for _ in range(repeats + 1):  # the first call compiles
+                    _, rep = merge(m1, m2, T0, refine=refine, T_1_2_true=T)
+                    times.append(sum(rep.timings.get(k, 0.0) for k in ("icp", "dense", "evaluate")))
+                row.append((rep.displacement, rep.icp["num_iterations"], float(np.median(times[1:]))))
+            (e0, it, t0), (e1, _, t1) = row
+            print(f"{scene:>7} {res:4.2f} {name:>12} {rep.displacement_init:9.3f} | {e0:8.4f} {it:4d} {t0:6.2f} | "
+                  f"{e1:13.4f} {t1:6.2f} | {res / 4:7.3f}", flush=True)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--res", type=float, nargs="+", default=[0.2, 0.1])
@@ -332,6 +368,8 @@ def main():
     ap.add_argument("--grid-res", type=float, default=0.2)
     ap.add_argument("--grid-zmax", type=float, default=1.0)
     ap.add_argument("--skip-sizes", action="store_true")
+    ap.add_argument("--scenes", nargs="*", default=[], choices=sorted(SCENE_RES),
+                    help="the default local refinement (icp vs icp+dense) on simulated scenes")
     ap.add_argument("--skip-grid", action="store_true")
     ap.add_argument("--global-res", type=float, nargs="*", default=[],
                     help="global registration rows at these resolutions (correlation_search vs Open3D FPFH + RANSAC)")
@@ -354,6 +392,8 @@ def main():
         bench_grid(args.grid_res, args.grid_zmax)
     for res in args.global_res:
         bench_global(res, args.global_k)
+    if args.scenes:
+        bench_scenes(args.scenes, max(1, args.repeats - 1))
 
 
 if __name__ == "__main__":

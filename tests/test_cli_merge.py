@@ -35,7 +35,7 @@ def test_merge_positional_thesis_order_with_report_and_figures(files, capsys):
     out = files / "merged.bt"
     rc = main(["merge", str(files / "a.ot"), str(files / "b.ot"), str(out), *_guess_args(),
                "--report", str(files / "r.json"), "--figure", str(files / "fig.png"),
-               "--map-figure", str(files / "map.png"),
+               "--map-figure", str(files / "map.png"), "--icp-figure", str(files / "icp.png"),
                "--true-xyz", f"{T_TRUE[0, 3]}", f"{T_TRUE[1, 3]}", "0",
                "--true-rpy", "0", "0", f"{math.pi / 4}"])
     text = capsys.readouterr().out
@@ -45,7 +45,7 @@ def test_merge_positional_thesis_order_with_report_and_figures(files, capsys):
     assert rep["counts"]["leaves_merged"] > 0 and rep["icp"] is not None
     assert rep["epsilon_r"] < rep["epsilon_r_init"]
     assert "epsilon_r" in text and str(out) in text
-    for png in ("fig.png", "map.png"):
+    for png in ("fig.png", "map.png", "icp.png"):  # icp.png: the reported run (icp_trace checks it)
         data = (files / png).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
     # .bt stores maximum likelihood: the merged map is non-trivial and in map 1's frame
@@ -123,7 +123,7 @@ def test_dump_config_round_trip(tmp_path, capsys):
     assert main(["dump-config"]) == 0
     text = capsys.readouterr().out
     data = tomllib.loads(text)
-    assert data["registration"]["refine"] == "icp" and data["fuse"]["rule"] == "sum"
+    assert data["registration"]["refine"] == "icp+dense" and data["fuse"]["rule"] == "sum"  # the default
     (tmp_path / "c.toml").write_text(text.replace('rule = "sum"', 'rule = "max"'))
     assert main(["dump-config", "--config", str(tmp_path / "c.toml"), "--json",
                  "--out", str(tmp_path / "c.json")]) == 0

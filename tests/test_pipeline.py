@@ -168,7 +168,8 @@ def test_bad_inputs_raise_with_kind():
 
 def test_not_converged_policy():
     m1, m2, T = small_pair()
-    cfg = MergeConfig().replace(registration={"max_iterations": 3})
+    # ICP's own policy: refine="icp" (with "icp+dense" the dense step moves even the guess)
+    cfg = MergeConfig().replace(registration={"max_iterations": 3, "refine": "icp"})
     _, rep = merge(m1, m2, perturbed(), config=cfg)
     assert rep.status == "not_converged" and rep.icp["num_iterations"] == 3
     assert any("did not converge" in w for w in rep.warnings)
@@ -261,15 +262,34 @@ def test_merge_many_graph_from_guesses_and_an_unplaced_map(tmp_path):
     assert merged.num_leaves > m1.num_leaves
 
 
-def test_icp_trace_matches_icp(merged_icp):
+@pytest.mark.xfail(reason="open: on this voxel-built room the dense step ends 0.039 m off from perturbed() "
+                          "(ICP alone 0.006 m); the simulated scenes' slow test holds", strict=False)
+def test_default_refinement_ends_within_a_quarter_voxel(merged_icp):
+    """The default refinement (``"icp+dense"``) from the in-basin guess of ``merged_icp`` (0.1
+    rad, 0.11 m) and from the truth itself ends within a quarter voxel of the truth."""
     _, rep = merged_icp
-    tr = icp_trace(rep.points_1, rep.points_2, rep.T_1_2_init, RES, T_1_2_true=T_TRUE)
-    assert tr["T_1_2"].shape == (len(tr["rmse"]) + 1, 4, 4)
-    # the replay follows the same schedule; float rounding of the host loop can change
-    # discrete correspondences, so compare quality rather than the exact end point
-    assert tr["epsilon_r"][-1] < 0.15 and tr["epsilon_t"][-1] < 0.5
+    assert rep.refine == "icp+dense" and rep.displacement < RES / 4, rep.displacement
+    m1, m2, T = small_pair()
+    _, rep_t = merge(m1, m2, T, T_1_2_true=T)
+    assert rep_t.displacement < RES / 4, rep_t.displacement
+
+
+def test_icp_trace_is_the_reported_run(merged_icp):
+    """The convergence figure's trace is the run the report gives: the same iterations, ending
+    at the reported ICP transform exactly; a different run is refused."""
+    _, rep = merged_icp
+    tr = icp_trace(rep.points_1, rep.points_2, rep.T_1_2_init, RES, T_1_2_true=T_TRUE, result=rep.icp_result)
+    K = rep.icp["num_iterations"]
+    assert tr["num_iterations"] == K and tr["status"] == rep.icp["status"]
+    assert tr["T_1_2"].shape == (K + 1, 4, 4) and len(tr["rmse"]) == len(tr["distance"]) == K
+    np.testing.assert_array_equal(tr["T_1_2"][-1], np.asarray(rep.icp_result.T_target_source, np.float64))
+    np.testing.assert_array_equal(tr["T_1_2"][0], rep.T_1_2_init)
+    assert np.all(np.isfinite(tr["T_1_2"])) and np.all(tr["num_inliers"] > 0)
     assert tr["epsilon_r"][0] == pytest.approx(rep.epsilon_r_init, rel=1e-5)
-    assert tr["rmse"][-1] <= tr["rmse"][0]
+    # the stage distance only shrinks, 10 res down to 2 res
+    assert np.all(np.diff(tr["distance"]) <= 0) and tr["distance"][-1] == pytest.approx(2 * RES)
+    with pytest.raises(ValueError, match="not the reported one"):  # another run: 5 iterations
+        icp_trace(rep.points_1, rep.points_2, rep.T_1_2_init, RES, max_iterations=5, result=rep.icp_result)
 
 
 def test_merge_with_symmetric_coarse_matching(merged_icp):
@@ -324,7 +344,7 @@ def test_report_is_frozen_and_summary(merged_icp):
     with pytest.raises(dataclasses.FrozenInstanceError):
         rep.status = "x"
     s = rep.summary()
-    assert "epsilon_r" in s and "ICP (icp): converged" in s
+    assert "epsilon_r" in s and "ICP (icp+dense): converged" in s  # the default refinement
 
 
 def test_refine_dense_reports_like_icp():
@@ -470,7 +490,7 @@ def _pick(T_pick):
 def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():
     """``octomerge demo``'s job with ``refine="icp+dense"``: the dense alignment, started at the
     level of ICP's last correspondence distance, brings ICP's result (0.106 m) within a quarter
-    voxel (0.023 m measured). Run from the coarsest level it had carried ICP's result 0.33 m /
+    voxel (0.020 m measured). Run from the coarsest level it had carried ICP's result 0.33 m /
     0.07 rad off (the 0.8 and 0.4 m levels prefer that pose)."""
     from octomerge_jax.cli.demo import perturbed_guess
     from octomerge_jax.pipeline import DemoConfig
@@ -506,3 +526,19 @@ def test_merge_at_outdoor_scale(tmp_path):
     assert rep.icp["converged"] and max(m1.num_leaves, m2.num_leaves) < merged.num_leaves < m1.num_leaves + m2.num_leaves
     _, rep2 = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T)
     assert rep2.displacement < 0.2 and rep2.icp["dense"]["status"] in (0, 1), rep2.icp["dense"]  # used
+
+
+@pytest.mark.slow  # simulates the lab and office (~80 s each here) and the campus (~7 min)
+@pytest.mark.parametrize("scene,res", [("lab", 0.1), ("office", 0.1), ("campus", 0.2)])
+def test_default_refinement_is_sub_voxel_on_the_simulated_scenes(scene, res):
+    """The demo's pairs: started at the truth, and from a guess 0.1 rad / 0.3 m off, the
+    default refinement ends within a quarter voxel (mean displacement of map 2's occupied
+    voxels). ICP alone ends up to a voxel off (lab from the truth: 0.092 m): on voxel centres
+    its objective cannot tell the truth from a one-voxel shift (``docs/design.md``, "Dense
+    alignment ends the default refinement")."""
+    from octomerge_jax.sim import make_two_robot_maps
+
+    m1, m2, T = make_two_robot_maps(scene, res)
+    for guess in (T, transform_from_xyz_rpy(0.18, -0.24, 0.0, 0.0, 0.0, 0.1) @ T):
+        _, rep = merge(m1, m2, guess, T_1_2_true=T)
+        assert rep.displacement < res / 4, (scene, rep.displacement, rep.icp)

@@ -53,7 +53,7 @@ def register(subparsers) -> None:
     p.add_argument("--yaw-error", type=float, metavar="RAD", help="yaw error of the guess (default 0.05)")
     p.add_argument("--xyz-error", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="translation error of the guess [m] (default 0.4 -0.3 0)")
-    p.add_argument("--refine", choices=REFINE_CHOICES, help="refinement (default icp)")
+    p.add_argument("--refine", choices=REFINE_CHOICES, help="refinement (default icp+dense)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures (faster)")
     p.add_argument("--config", type=Path, metavar="FILE", help="TOML/JSON settings (octomerge dump-config)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

@@ -8,6 +8,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from ..pipeline import COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, REFINE_CHOICES, MergeConfig, load_config
 from ..io import save
 from ..io.bags import write_bag
@@ -76,8 +78,9 @@ def register(subparsers) -> None:
     g.add_argument("--true-rpy", type=float, nargs=3, metavar=("R", "P", "Y"), help="ground truth rotation")
     a = p.add_argument_group("pipeline (override --config)")
     a.add_argument("--refine", choices=REFINE_CHOICES,
-                   help="global (default without a guess: no guess needed), icp (default with a guess), "
-                        "multi (multi-hypothesis ICP for poor guesses), dense, icp+dense or none")
+                   help="global (default without a guess: no guess needed), icp+dense (default with a guess: "
+                        "ICP, then the dense alignment of the occupancy fields, sub-voxel), icp (ICP only, "
+                        "faster), multi (multi-hypothesis ICP for poor guesses), dense or none")
     a.add_argument("--hypotheses", choices=HYPOTHESES_CHOICES,
                    help="starts of --refine multi: yaw_grid (the guess turned in yaw), correlation "
                         "(global search over yaw x translation, for partial overlap and guesses metres off) or "
@@ -245,14 +248,32 @@ def write_figures(report, merged, figure, map_figure, icp_figure, cfg, truth=Non
         with writing(map_figure):
             plot_map(merged, map_figure, title="merged map (map 1 frame)")
     if icp_figure is not None:
-        if report.icp is None:
-            print("octomerge merge: warning: --icp-figure needs ICP (refine is none); skipped",
+        if report.icp is None or report.refine == "dense":
+            print(f"octomerge merge: warning: --icp-figure needs ICP (refine is {report.refine}); skipped",
                   file=sys.stderr)
         else:
-            start = report.T_1_2_init
-            if report.refine == "multi":  # trace the winning hypothesis
-                start = report.icp_result.hypotheses[int(report.icp_result.best_index)]
-            tr = icp_trace(report.points_1, report.points_2, start, report.resolution, cfg,
-                           T_1_2_true=truth)
-            with writing(icp_figure):
-                plot_icp_convergence(tr, icp_figure)
+            try:
+                trace = _reported_trace(report, cfg, truth)
+            except ValueError as err:  # the run could not be reproduced: no figure of another run
+                print(f"octomerge merge: warning: {err}; --icp-figure skipped", file=sys.stderr)
+            else:
+                with writing(icp_figure):
+                    plot_icp_convergence(trace, icp_figure)
+
+
+def _reported_trace(report, cfg, truth) -> dict:
+    """``icp_trace`` of the ICP run ``report`` reports (checked to be that run), with the
+    transform used (``T_1_2_used``) where a later step (dense alignment) moved it. With
+    ``refine="multi"`` the winning hypothesis's run is replayed from its start (unchecked:
+    ``icp_multi`` runs its hypotheses as one program)."""
+    if report.refine == "multi":
+        start = report.icp_result.hypotheses[int(report.icp_result.best_index)]
+        tr = icp_trace(report.points_1, report.points_2, start, report.resolution, cfg, T_1_2_true=truth)
+    else:
+        tr = icp_trace(report.points_1, report.points_2, report.T_1_2_init, report.resolution, cfg,
+                       T_1_2_true=truth, result=report.icp_result)
+    if not np.allclose(report.T_1_2, tr["T_1_2"][-1], rtol=0.0, atol=1e-6):
+        tr["T_1_2_used"] = np.asarray(report.T_1_2, np.float64)
+        if truth is not None:
+            tr["epsilon_used"] = (float(report.epsilon_r), float(report.epsilon_t))
+    return tr

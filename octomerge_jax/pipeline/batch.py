@@ -5,9 +5,9 @@ stage functions of ``merge`` (``refine.py``, ``transform_to_frame_1``, ``fuse_wi
 
 1. per pair: resolution / guess checks, occupied clouds and overlap (host, cheap); a pair that
    fails gets ``status="error"`` and a message, the others go on;
-2. ICP (``refine="icp"``): pairs grouped by (resolution, source bucket, target bucket) and each
+2. ICP (``refine="icp"``, ``"icp+dense"``): pairs grouped by (resolution, source bucket, target bucket) and each
    group registered by **one** jitted call of ``registration.icp_padded_stack``, then judged
-   pair by pair (``register_icp``: the one ICP status policy); other refine modes register
+   pair by pair (``register_icp``: the one ICP status policy, then the dense step); other refine modes register
    pair by pair (``register``);
 3. ``transform_map`` per pair (pairs of one bucket share the compiled kernel);
 4. fusion: pairs grouped by (map-1 capacity, transformed map-2 capacity) and each group fused
@@ -135,9 +135,10 @@ def merge_batch(pairs: Sequence, *, config: MergeConfig | None = None) -> list[B
 
 def _register_all(jobs: dict[int, _Job], cfg: MergeConfig, results: list) -> dict[int, Registration]:
     """Each job's ``Registration`` (a failed one's ``BatchResult`` goes to ``results[i]``):
-    ``refine="icp"`` with the ICP of each capacity bucket in one call (``_icp_bucket``)."""
+    ``refine="icp"`` / ``"icp+dense"`` with the ICP of each capacity bucket in one call
+    (``_icp_bucket``; the dense step then pair by pair, ``register_icp``)."""
     out = {}
-    if cfg.registration.refine != "icp":
+    if cfg.registration.refine not in ("icp", "icp+dense"):
         for i, job in jobs.items():
             try:
                 out[i] = register(job.m1, job.m2, job.T_1_2_init, cfg, job.timings)

@@ -59,13 +59,16 @@ DEMO_SCENES = ("lab", "office", "campus")
 class RegistrationConfig:
     """Alg. 1-3: occupied-leaf clouds, commonly mapped subsets, refinement of the guess.
 
-    - ``refine``: ``"icp"`` (one ICP from the guess on the commonly mapped subsets),
-      ``"multi"`` (candidates from ``hypotheses``, the one whose maps agree best picked, then
-      one ICP on the commonly mapped subsets from it, kept if the maps agree better; for poor
-      guesses), ``"dense"`` (``registration.align_dense``: the occupancy fields),
-      ``"icp+dense"`` (both, dense from ICP's result), ``"none"`` (trust the guess) or
-      ``"global"`` (no guess needed: ``pipeline.register_global``; what ``merge`` uses when no
-      guess is given and ``refine`` is left at ``"icp"``).
+    - ``refine``: ``"icp+dense"`` (the default: ICP from the guess on the commonly mapped
+      subsets, then the dense alignment of the occupancy fields from ICP's result at the
+      levels finer than ICP's last correspondence distance: sub-voxel, see ``docs/design.md``,
+      "Dense alignment ends the default refinement"), ``"icp"`` (ICP only: faster, about a
+      voxel off), ``"multi"`` (candidates from ``hypotheses``, the one whose maps agree best
+      picked, then one ICP on the commonly mapped subsets from it, kept if the maps agree
+      better; for poor guesses), ``"dense"`` (``registration.align_dense`` only),
+      ``"none"`` (trust the guess) or ``"global"`` (no guess needed:
+      ``pipeline.register_global``; what ``merge`` uses when no guess is given and ``refine``
+      is left at its default).
     - ``overlap``: ``"bbox"`` (thesis Alg. 2: intersection of bounding boxes; the default),
       ``"voxel"`` (points near the other map's points under the guess) or ``"none"`` (all
       points).
@@ -95,7 +98,7 @@ class RegistrationConfig:
       guess). Too few inliers is always an error unless ``refine="none"``.
     """
 
-    refine: str = "icp"
+    refine: str = "icp+dense"
     overlap: str = "bbox"
     overlap_margin: float | None = None
     min_overlap_points: int = 30

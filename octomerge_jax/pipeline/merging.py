@@ -33,7 +33,7 @@ from ..map import OccupancyMap, empty
 from ..resample import sample, transform_map
 from ..se3 import check_rigid_transform
 from ..tree import from_voxels
-from .config import MergeConfig, validate
+from .config import MergeConfig, RegistrationConfig, validate
 from .refine import register
 from .report import MergeError, MergeReport, Registration
 from .timings import Timings
@@ -187,13 +187,13 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
         unless ``resample=True``, which resamples ``m2`` onto ``m1``'s grid first).
       T_1_2_init: ``(4, 4)`` initial guess mapping map 2's frame into map 1's [m]
         (``None``: no guess: unless ``refine`` is given or the config sets another mode than
-        the default ``"icp"``, the transform is searched for, ``refine="global"``; see
-        ``transform_from_xyz_rpy``).
+        the default ``"icp+dense"`` or ``"icp"``, the transform is searched for,
+        ``refine="global"``; see ``transform_from_xyz_rpy``).
       refine: ``"global"`` (no guess needed; status ``"ambiguous"`` / ``"no_overlap"`` /
-        ``"failed"`` when the result is not to be trusted), ``"icp"``, ``"multi"``
+        ``"failed"`` when the result is not to be trusted), ``"icp+dense"`` (the default from a
+        guess: ICP, then the dense alignment; sub-voxel), ``"icp"``, ``"multi"``
         (multi-hypothesis search for poor guesses), ``"dense"``
-        (``align_dense``: gradient-based alignment of the occupancy fields), ``"icp+dense"``
-        or ``"none"``.
+        (``align_dense``: gradient-based alignment of the occupancy fields) or ``"none"``.
       overlap: ``"bbox"`` (thesis Alg. 2, default) or ``"voxel"`` subsets fed to ICP, or
         ``"none"`` (see ``config.RegistrationConfig``).
       interpolation: ``transform_map`` method (``"trilinear"``, ``"nearest"``, ``"thesis"``).
@@ -204,7 +204,8 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
     Raises ``MergeError`` (a ``ValueError``) with ``kind`` for inputs the user must fix.
     """
     cfg = config_with_overrides(config, refine, overlap, interpolation, rule, resample)
-    if T_1_2_init is None and refine is None and cfg.registration.refine == "icp":
+    default_refine = RegistrationConfig().refine
+    if T_1_2_init is None and refine is None and cfg.registration.refine in ("icp", default_refine):
         cfg = cfg.replace(registration={"refine": "global"})  # no guess: search for the transform
     timings = Timings()
     warnings: list[str] = []

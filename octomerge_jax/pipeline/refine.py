@@ -126,7 +126,7 @@ def overlap_for_icp(clouds: Clouds, T_1_2_init, config: MergeConfig, resolution:
             f"no overlap: under the initial guess only {q1.shape[0]} points of map 1 and "
             f"{q2.shape[0]} of map 2 lie in commonly mapped space (need "
             f"{rc.min_overlap_points}); check the guess (x y z roll pitch yaw, radians) or "
-            f"try --refine multi", "no_overlap")
+            f"leave the guess out to search without one", "no_overlap")
     return Overlap(q1, q2, counts)
 
 
@@ -231,15 +231,17 @@ def refine_dense(m1, m2, T_start, timings: Timings, warnings: list[str],
     """``registration.align_dense`` from ``T_start`` (timed as ``dense``).
 
     ``within_m`` [m]: the start is known to lie about this close to the answer (ICP's last
-    correspondence distance), so the levels with coarser cells are skipped. Its result is used
-    when its status is usable (``Status.usable``); otherwise the start is kept and a warning
-    appended to ``warnings``."""
+    correspondence distance), so the levels with coarser cells are left out (neither prepared
+    nor solved; ``docs/design.md``, "Dense alignment ends the default refinement"). Its result
+    is used when its status is usable (``Status.usable``); otherwise the start is kept and a
+    warning appended to ``warnings``."""
+    levels = tuple(reg.default_levels(m1.resolution))
     start_level = 0
     if within_m is not None and np.isfinite(within_m):
-        fits = m1.resolution * 2.0 ** np.asarray(reg.default_levels(m1.resolution)) <= within_m * (1 + 1e-6)
+        fits = m1.resolution * 2.0 ** np.asarray(levels) <= within_m * (1 + 1e-6)
         start_level = int(np.argmax(fits)) if fits.any() else len(fits) - 1  # coarse to fine
     with timings.stage("dense") as stage:
-        r = stage.ready(reg.align_dense(m1, m2, np.asarray(T_start, np.float64), start_level=start_level))
+        r = stage.ready(reg.align_dense(m1, m2, np.asarray(T_start, np.float64), levels=levels[start_level:]))
     status = Status(int(r.status))
     info = {"status": int(status), "converged": status is Status.CONVERGED, "start_level": start_level,
             "restarted": bool(np.asarray(r.restarted)),

@@ -12,7 +12,7 @@ its public face), ``dense``, ``correlation``, ``evaluate``, ``metrics``, ``rende
 from ..se3 import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quaternion, to_xyz_rpy, transform_points
 from ._icp import (COARSE_MATCHING, IcpMultiResult, IcpResult, default_hypotheses, icp, icp_multi, icp_padded,
                    icp_padded_stack, invert_result, kabsch, pad_points, pad_points_host, sequential_default,
-                   stage_distances)
+                   stage_distances, IcpPath, icp_with_path)
 from .correlation import CorrelationResult, correlation_search
 from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best_result, default_levels,
                     fused_log_odds, level_losses, pose_from_increment, prepare_alignment, problem_loss,
@@ -33,7 +33,7 @@ __all__ = [
     # ICP (Alg. 3)
     "COARSE_MATCHING", "IcpMultiResult", "IcpResult", "default_hypotheses", "icp", "icp_multi", "icp_padded",
     "icp_padded_stack", "invert_result", "kabsch", "pad_points", "pad_points_host", "sequential_default",
-    "stage_distances",
+    "stage_distances", "IcpPath", "icp_with_path",
     "HashGrid", "any_within", "build_grid", "build_grids", "nearest",
     # dense alignment and the correlation search
     "AlignProblem", "AlignResult", "align_dense", "alignment_loss", "best_result", "default_levels",

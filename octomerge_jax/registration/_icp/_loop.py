@@ -36,7 +36,7 @@ from ._coarse import Queries, QueryClouds, coarse_cloud, query_clouds
 from ._kabsch import implicit_step, kabsch
 from ._result import IcpResult
 
-__all__ = ["Problem", "Progress", "start_at", "run_until", "register"]
+__all__ = ["Problem", "Progress", "IcpPath", "start_at", "run_until", "register", "register_with_path"]
 
 STALL_REL, STALL_PATIENCE = 1e-3, 3  # a coarse stage ends when its energy stalls
 STALL_REL_FINAL, STALL_PATIENCE_FINAL = 0.0, 6  # the last stage: no new best at all (a cycle)
@@ -87,6 +87,34 @@ class LoopState(NamedTuple):
     history: History  # Anderson history of the stage
     energy_best: jax.Array  # () float32 [m^2], the stage's lowest truncated energy
     stall: jax.Array  # () int32, iterations without a new best energy
+    path: IcpPath | None = None  # the iterations so far (register_with_path), else None
+
+
+class IcpPath(NamedTuple):
+    """Every iteration of one run, as the loop took it (row ``k``: iteration ``k + 1``; rows
+    ``>= num_iterations`` are NaN / 0). Recorded by ``register_with_path``."""
+
+    T: jax.Array  # (K, 4, 4) float32, the accepted plain (Kabsch) iterate after the iteration
+    rmse: jax.Array  # (K,) float32 [m], rms distance of the iteration's correspondences (inliers)
+    num_inliers: jax.Array  # (K,) int32, the iteration's correspondences within its stage distance
+    distance: jax.Array  # (K,) float32 [m], the iteration's stage (correspondence) distance
+
+
+def empty_path(max_iterations: int) -> IcpPath:
+    """An ``IcpPath`` of ``max_iterations`` unrecorded rows."""
+    K = int(max_iterations)
+    nan = jnp.full((K,), jnp.nan, jnp.float32)
+    return IcpPath(jnp.full((K, 4, 4), jnp.nan, jnp.float32), nan, jnp.zeros((K,), jnp.int32), nan)
+
+
+def _recorded(path: IcpPath | None, k, T, d2, inlier, distance) -> IcpPath | None:
+    """``path`` with row ``k`` set (``None`` when the run records nothing)."""
+    if path is None:
+        return None
+    n = jnp.sum(inlier).astype(jnp.int32)
+    rmse = jnp.sqrt(jnp.sum(jnp.where(inlier, d2, 0.0)) / jnp.maximum(n, 1).astype(jnp.float32))
+    return IcpPath(path.T.at[k].set(T), path.rmse.at[k].set(rmse), path.num_inliers.at[k].set(n),
+                   path.distance.at[k].set(distance))
 
 
 class Loop(NamedTuple):
@@ -181,15 +209,17 @@ def _iteration(problem: Problem, loop: Loop, s: LoopState) -> LoopState:
     progress = Progress(T_next, jnp.where(advance, p.stage + 1, p.stage), p.iteration + 1, finish,
                         jnp.where(finish, status, p.status).astype(jnp.int32))
     keep = reject  # a rejected iterate's correspondences are not used
+    T_plain = jnp.where(keep, s.T_plain, G)
     return LoopState(
         progress=progress,
         matches=Matches(*(jnp.where(keep, a, b) for a, b in zip(s.matches, m))),
-        T_plain=jnp.where(keep, s.T_plain, G),
+        T_plain=T_plain,
         accelerated=used & ~restart & ~finish,
         energy_prev=jnp.where(restart, jnp.inf, energy),
         history=restarted(restart, T_next, history),
         energy_best=jnp.where(advance, jnp.inf, energy_best),
         stall=jnp.where(advance, 0, stall).astype(jnp.int32),
+        path=_recorded(s.path, p.iteration, T_plain, d2, m.inlier, problem.dists[p.stage]),
     )
 
 
@@ -241,12 +271,13 @@ def _in_loop(loop: Loop, stage, last_stage: int):
 
 
 def _iterate(problem: Problem, clouds: QueryClouds, start: Progress, *, max_iterations: int,
-             run_coarse: bool = True, stop_stage=None, stop_when=None) -> LoopState:
+             run_coarse: bool = True, stop_stage=None, stop_when=None, record: bool = False) -> LoopState:
     """Run the loops from ``start``. Each loop's correspondences are as long as its clouds and
-    start empty; the rest of the state carries over."""
+    start empty; the rest of the state carries over. ``record`` (static): keep an ``IcpPath``."""
     T0 = jax.lax.stop_gradient(jnp.asarray(start.T, jnp.float32))
     state = LoopState(Progress(T0, *(jnp.asarray(x) for x in start[1:])), None, T0, jnp.bool_(False),
-                      jnp.float32(jnp.inf), empty_history(T0), jnp.float32(jnp.inf), jnp.int32(0))
+                      jnp.float32(jnp.inf), empty_history(T0), jnp.float32(jnp.inf), jnp.int32(0),
+                      empty_path(max_iterations) if record else None)
     last = problem.last_stage
     for loop in _loops(clouds, run_coarse=run_coarse, run_last=stop_stage is None):
         rows = loop.clouds.points.shape[1]
@@ -279,6 +310,16 @@ def register(problem: Problem, source, source_count, target, start: Progress, *,
     clouds = query_clouds(source, source_count, problem.dists, problem.coarse_matching)
     state = _iterate(problem, clouds, start, max_iterations=max_iterations, run_coarse=run_coarse)
     return _report(problem, source, source_count, target, clouds, state)
+
+
+def register_with_path(problem: Problem, source, source_count, target, start: Progress, *,
+                       max_iterations: int) -> tuple[IcpResult, IcpPath]:
+    """``register`` from ``start_at(T_init)`` that also returns its ``IcpPath``: the same
+    iterations (recording changes no iterate), so the path's last recorded transform is the
+    result's ``T_target_source``."""
+    clouds = query_clouds(source, source_count, problem.dists, problem.coarse_matching)
+    state = _iterate(problem, clouds, start, max_iterations=max_iterations, record=True)
+    return _report(problem, source, source_count, target, clouds, state), state.path
 
 
 def _report(problem: Problem, source, source_count, target, clouds: QueryClouds, state: LoopState) -> IcpResult:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from functools import partial
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ... import se3
@@ -13,11 +14,11 @@ from ..._ops import is_traced
 from ._centred import centred, uncentre_result
 from ._coarse import check_coarse_matching
 from ._host import as_argument, check_transform, prepare_points
-from ._loop import Problem, register, start_at
+from ._loop import IcpPath, Problem, register, register_with_path, start_at
 from ._result import IcpResult, invert_result
 from ._schedule import build_stage_grids, resolve_options, table_sizes as stage_table_sizes
 
-__all__ = ["solve_padded", "icp_padded", "icp_padded_stack", "icp"]
+__all__ = ["solve_padded", "icp_padded", "icp_padded_stack", "icp", "icp_with_path"]
 
 
 @partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching",
@@ -31,6 +32,20 @@ def solve_padded(source, source_count, target, target_count, T_target_source_ini
     problem = Problem(grids, dists, epsilon, final_epsilon, min_inliers, coarse_matching, two_phase)
     r = register(problem, source, source_count, target, start_at(T_init), max_iterations=max_iterations)
     return uncentre_result(r, uncentre)
+
+
+@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching",
+                                   "two_phase"))
+def solve_padded_with_path(source, source_count, target, target_count, T_target_source_init, dists, epsilon,
+                           final_epsilon, min_inliers, *, max_iterations, cell_capacity, table_sizes,
+                           coarse_matching, two_phase) -> tuple[IcpResult, IcpPath]:
+    """``solve_padded`` that also returns the run's ``IcpPath`` (uncentred, as the result)."""
+    source, target, T_init, uncentre = centred(source, source_count, target, target_count, T_target_source_init)
+    grids = build_stage_grids(target, target_count, dists, table_sizes, cell_capacity)
+    problem = Problem(grids, dists, epsilon, final_epsilon, min_inliers, coarse_matching, two_phase)
+    r, path = register_with_path(problem, source, source_count, target, start_at(T_init),
+                                 max_iterations=max_iterations)
+    return uncentre_result(r, uncentre), path._replace(T=uncentre(path.T))
 
 
 def icp_padded(source, source_count, target, target_count, T_target_source_init, distances_m,
@@ -128,3 +143,41 @@ def icp(source, target, T_target_source_init, *, resolution: float,
         r = icp_padded(t, tc, s, sc, T0_inv, dists, eps, min_inliers=min_inliers, **kw)
         return invert_result(r)
     return icp_padded(s, sc, t, tc, T0, dists, eps, min_inliers=min_inliers, **kw)
+
+
+def icp_with_path(source, target, T_target_source_init, *, resolution: float, **options) -> tuple[IcpResult, IcpPath]:
+    """``icp`` (same arguments, host clouds) that also returns every iteration of the run as
+    an ``IcpPath``: ``path.T[k]`` the transform after iteration ``k + 1`` (source into target
+    frame, inverted back when the clouds were swapped), rows ``< result.num_iterations``
+    recorded; its last recorded row is ``result.T_target_source``. The iterations are those of
+    ``icp`` with the same arguments (recording changes no iterate); for convergence figures
+    (``pipeline.icp_trace``). Raises ``ValueError`` as ``icp``."""
+    o = dict(max_correspondence_distance=None, min_correspondence_distance=None, shrink_factor=0.5,
+             transformation_epsilon=None, max_iterations=100, cell_capacity=8, min_inliers=6, swap_larger=True,
+             coarse_matching="centroid")
+    unknown = set(options) - set(o)
+    if unknown:
+        raise ValueError(f"icp_with_path: unknown option(s) {sorted(unknown)}")
+    o.update(options)
+    dists, eps = resolve_options(resolution, o["max_correspondence_distance"], o["min_correspondence_distance"],
+                                 o["shrink_factor"], o["transformation_epsilon"], o["max_iterations"],
+                                 o["cell_capacity"])
+    check_coarse_matching(o["coarse_matching"])
+    T0 = np.asarray(check_transform(T_target_source_init, "T_target_source_init"), np.float32)
+    s, sc, s_host = prepare_points(np.asarray(source), None, "source")
+    t, tc, t_host = prepare_points(np.asarray(target), None, "target")
+    swap = bool(o["swap_larger"]) and s_host > t_host
+    if swap:
+        s, sc, t, tc = t, tc, s, sc
+        T0 = np.linalg.inv(np.float64(T0)).astype(np.float32)
+    eps = as_argument(eps, np.float32)
+    r, path = solve_padded_with_path(
+        s, sc, t, tc, as_argument(T0, np.float32), as_argument(dists, np.float32), eps, eps * np.float32(0.01),
+        as_argument(o["min_inliers"], np.int32), max_iterations=int(o["max_iterations"]),
+        cell_capacity=int(o["cell_capacity"]), table_sizes=stage_table_sizes(t.shape[0], dists, None),
+        coarse_matching=o["coarse_matching"], two_phase=True)
+    if swap:
+        r = invert_result(r)
+        path = path._replace(T=se3.inverse(path.T))
+    # the last iterate is the result: the same value, uncentred (and inverted) once, not per row
+    return r, path._replace(T=path.T.at[jnp.maximum(r.num_iterations - 1, 0)].set(r.T_target_source))
