@@ -63,8 +63,9 @@ def perturbed(dx=0.1, dy=-0.05, dyaw=0.1):
 
 @pytest.fixture(scope="module")
 def merged_icp():
+    """The ICP path on its own (``refine="icp"``); the default ``"icp+dense"`` is tested below."""
     m1, m2, T = small_pair()
-    return merge(m1, m2, perturbed(), T_1_2_true=T)
+    return merge(m1, m2, perturbed(), refine="icp", T_1_2_true=T)
 
 
 def test_merge_recovers_transform_and_composes_stages(merged_icp):
@@ -113,7 +114,7 @@ def test_merge_far_from_the_origin_matches_the_merge_at_the_origin(merged_icp):
     m1f = shifted(m1, off)
     m2f = shifted(m2, off)  # map 2's own frame is moved by the same offset
     conj = lambda A: S @ A @ np.linalg.inv(S)  # noqa: E731  (the same motion in shifted frames)
-    merged, rep = merge(m1f, m2f, conj(perturbed()), T_1_2_true=conj(T))
+    merged, rep = merge(m1f, m2f, conj(perturbed()), refine="icp", T_1_2_true=conj(T))
     assert m1f.num_leaves == m1.num_leaves and m2f.num_leaves == m2.num_leaves
     assert rep.icp["converged"]
     assert rep.displacement == pytest.approx(rep0.displacement, abs=0.002)
@@ -296,7 +297,7 @@ def test_merge_with_symmetric_coarse_matching(merged_icp):
     """registration.coarse_matching reaches ICP: 'symmetric' registers the pair (translation
     within 0.12 m, about 6x the default path's error on this pair)."""
     m1, m2, T = small_pair()
-    cfg = MergeConfig().replace(registration={"coarse_matching": "symmetric"})
+    cfg = MergeConfig().replace(registration={"coarse_matching": "symmetric", "refine": "icp"})
     _, rep = merge(m1, m2, perturbed(), config=cfg, T_1_2_true=T)
     # from a guess at 0.28 / 0.150 the symmetric path ends at ~0.017 / 0.109 (the default's
     # ~0.01 / 0.02): bounds a returned guess cannot meet
@@ -344,7 +345,7 @@ def test_report_is_frozen_and_summary(merged_icp):
     with pytest.raises(dataclasses.FrozenInstanceError):
         rep.status = "x"
     s = rep.summary()
-    assert "epsilon_r" in s and "ICP (icp+dense): converged" in s  # the default refinement
+    assert "epsilon_r" in s and "ICP (icp): converged" in s
 
 
 def test_refine_dense_reports_like_icp():
