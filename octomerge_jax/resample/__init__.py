@@ -95,7 +95,7 @@ def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
             f"T_dst_src: the transformed map spans {p_min.round(3).tolist()} .. "
             f"{p_max.round(3).tolist()} m, outside OctoMap's key range +-{limit:g} m at "
             f"resolution {res:g} m")
-    plan = make_plan(m, T, method, space, int(chunk_bricks), out_capacity)
+    plan = make_plan(m, T, method, space, int(chunk_bricks), out_capacity, (p_min, p_max))
     cells = plan.cells
     kernel_out, total = run_kernel(plan) if plan.n_dest_bricks else (None, 0)
     out = merge_with_cells(kernel_out, total, cells.codes, cells.depths, cells.log_odds, m)

@@ -191,36 +191,63 @@ def _source_view(m: OccupancyMap) -> SourceView:
                       crow, n_db + uniq.size, n_db)
 
 
-def _window_rows(q, view: SourceView) -> np.ndarray:
+def _brick_grid(view: SourceView, q_lo, q_hi):
+    """A dense grid of table rows over the bricks ``q_lo..q_hi`` (inclusive ``(3,)`` keys) when
+    it is small (4 B per brick, at most ``max(2^22, 8 x dense bricks)``): dense bricks and the
+    coarse leaves of at most 8^3 bricks painted in. Returns ``(grid (z, y, x) int32, lo,
+    painted (c,) bool)`` or ``None``; ``painted`` marks the coarse leaves wholly in the grid."""
+    ext = q_hi - q_lo + 1
+    if np.any(ext <= 0) or np.prod(ext) > max(1 << 22, 8 * view.bricks.shape[0]):
+        return None
+    grid = np.full(tuple(ext[::-1]), view.nan_row, np.int32)
+    r = view.bricks - q_lo
+    ins = np.all((r >= 0) & (r < ext), axis=1)
+    grid[r[ins, 2], r[ins, 1], r[ins, 0]] = view.brick_rows[ins]
+    painted = np.zeros(view.coarse_start.size, bool)
+    if view.coarse_start.size:
+        width = np.cbrt((view.coarse_end - view.coarse_start).astype(np.float64) / 512)
+        width = np.rint(width).astype(np.int64)  # bricks per edge
+        base = morton.codes_to_keys(view.coarse_start).astype(np.int64) >> 3
+        inside = np.all((base >= q_lo) & (base + width[:, None] - 1 <= q_hi), axis=1)
+        for w in np.unique(width[inside & (width <= 8)]):
+            sel = np.flatnonzero(inside & (width == w))
+            painted[sel] = True
+            g = np.stack(np.meshgrid(*[np.arange(w)] * 3, indexing="ij"), -1).reshape(-1, 3)
+            k = (base[sel, None, :] + g[None] - q_lo).reshape(-1, 3)
+            grid[k[:, 2], k[:, 1], k[:, 0]] = np.repeat(view.coarse_rows[sel], g.shape[0])
+    return grid, q_lo, painted
+
+
+def _window_rows(q, view: SourceView, grid) -> np.ndarray:
     """Table rows of source bricks with keys ``q (..., 3)`` int64 (any, in range or not):
-    a dense row, the constant row of the coarse leaf covering the brick, or ``view.nan_row``."""
+    a dense row, the constant row of the coarse leaf covering the brick, or ``view.nan_row``.
+    ``grid``: ``_brick_grid``'s result or ``None``."""
     shape = q.shape[:-1]
     q = q.reshape(-1, 3)
     rows = np.full(q.shape[0], view.nan_row, np.int32)
     ok = np.all((q >= 0) & (q < KEY_MAX // BRICK_EDGE), axis=1)
-    bricks = view.bricks
-    if bricks.shape[0]:  # dense bricks: a dense grid of rows, or a binary search
-        lo = bricks.min(axis=0)
-        ext = bricks.max(axis=0) - lo + 1
+    rest = np.ones(view.coarse_start.size, bool)
+    if grid is not None:
+        g, lo, painted = grid
         r = q - lo
-        inside = ok & np.all((r >= 0) & (r < ext), axis=1)
-        lin = (r[:, 2] * ext[1] + r[:, 1]) * ext[0] + r[:, 0]
-        src = ((bricks[:, 2] - lo[2]) * ext[1] + bricks[:, 1] - lo[1]) * ext[0] + bricks[:, 0] - lo[0]
-        if np.prod(ext) <= max(1 << 22, 8 * src.size):  # 4 B per brick of the bounding box
-            grid = np.full(int(np.prod(ext)), view.nan_row, np.int32)
-            grid[src] = view.brick_rows
-            rows = np.where(inside, grid[np.where(inside, lin, 0)], rows)
-        else:  # sparse: binary search in the bricks sorted by linear index
-            order = np.argsort(src)
-            i = np.minimum(np.searchsorted(src[order], lin), src.size - 1)
-            hit = inside & (src[order][i] == lin)
-            rows = np.where(hit, view.brick_rows[order][i], rows)
-    if view.coarse_start.size:  # coarse leaves: the one whose range holds the brick
+        inside = np.all((r >= 0) & (r < g.shape[::-1]), axis=1)
+        r = np.where(inside[:, None], r, 0)
+        rows = np.where(inside, g[r[:, 2], r[:, 1], r[:, 0]], rows)
+        rest = ~painted
+    elif view.bricks.shape[0]:  # sparse dense bricks: binary search by Morton code
+        bcode = morton.keys_to_codes(view.bricks.astype(np.uint64))
+        order = np.argsort(bcode)
+        qc = morton.keys_to_codes(np.where(ok[:, None], q, 0).astype(np.uint64))
+        i = np.minimum(np.searchsorted(bcode[order], qc), bcode.size - 1)
+        hit = ok & (bcode[order][i] == qc)
+        rows = np.where(hit, view.brick_rows[order][i], rows)
+    if rest.any():  # the other coarse leaves: the one whose range holds the brick
+        cs, ce, cr = view.coarse_start[rest], view.coarse_end[rest], view.coarse_rows[rest]
         need = ok & (rows == view.nan_row)
         code = morton.keys_to_codes((q[need] << 3).astype(np.uint64))
-        j = np.searchsorted(view.coarse_start, code, side="right") - 1
-        hit = (j >= 0) & (view.coarse_end[np.maximum(j, 0)] > code)
-        rows[need] = np.where(hit, view.coarse_rows[np.maximum(j, 0)], view.nan_row)
+        j = np.searchsorted(cs, code, side="right") - 1
+        hit = (j >= 0) & (ce[np.maximum(j, 0)] > code)
+        rows[need] = np.where(hit, cr[np.maximum(j, 0)], view.nan_row)
     return rows.reshape(shape)
 
 
@@ -244,9 +271,10 @@ def _dest_windows(dest, T_key: KeyTransform, view: SourceView):
     wb = np.floor_divide(np.floor(umin - _WINDOW_MARGIN).astype(np.int64), BRICK_EDGE)
     g = CORNERS_27  # window brick x + 3 y + 9 z
     rows = np.empty((n, 27), np.int32)
+    grid = _brick_grid(view, wb.min(axis=0), wb.max(axis=0) + 2)
     step = 1 << 16  # bricks per block (bounds the scratch memory)
     for s in range(0, n, step):
-        rows[s:s + step] = _window_rows(wb[s:s + step, None, :] + g[None], view)
+        rows[s:s + step] = _window_rows(wb[s:s + step, None, :] + g[None], view, grid)
     return wb, rows
 
 
@@ -255,13 +283,15 @@ CORNERS_27 = np.array([[i % 3, (i // 3) % 3, i // 9] for i in range(27)], np.int
 
 
 def make_plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: int,
-              out_capacity: int | None) -> Plan:
-    """Destination bricks, the source's brick table and the key-frame constants for
-    ``transform_map(m, T, method, space=space)`` with ``chunk`` bricks per loop step;
-    ``out_capacity`` ``None``: a guess from the leaf and brick counts."""
+              out_capacity: int | None, bounds=None) -> Plan:
+    """Destination cells and bricks (``_cells.refine``), the source's brick table and the
+    key-frame constants for ``transform_map(m, T, method, space=space)`` with ``chunk`` bricks
+    per loop step; ``out_capacity`` ``None``: a guess from the leaf and brick counts;
+    ``bounds``: ``transformed_bounds(m, T)`` if known. Raises ``MemoryBudgetError`` before
+    allocating over the memory budget."""
     T_key = key_transform(T, m.resolution)
     R, t_key = T_key
-    cells = refine(m, T_key, *transformed_bounds(m, T))
+    cells = refine(m, T_key, *(transformed_bounds(m, T) if bounds is None else bounds))
     dest = cells.bricks
     n_b = dest.shape[0]
     b_cap = max(bucket_capacity(n_b, minimum=1024), chunk)
