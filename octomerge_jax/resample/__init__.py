@@ -89,7 +89,7 @@ def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
     if m.num_leaves == 0:
         return m
     p_min, p_max = transformed_bounds(m, T)
-    limit = morton.KEY_OFFSET * res
+    limit = morton.KEY_OFFSET * res * (1 + 1e-12)  # rounding of a map spanning the key range
     if np.any(p_min < -limit) or np.any(p_max > limit):
         raise ValueError(
             f"T_dst_src: the transformed map spans {p_min.round(3).tolist()} .. "

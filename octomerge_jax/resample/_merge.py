@@ -26,6 +26,7 @@ __all__ = ["merge_whole_bricks", "merge_with_cells"]
 
 _D = morton.TREE_DEPTH
 _COMPACT_CHUNK = 1 << 16  # rows per step of the in-place compaction
+HOST_MERGE_MAX = 1 << 16  # outputs up to this many leaves join the coarse cells on the host
 
 
 def _prune_whole_bricks(codes, values):
@@ -199,6 +200,15 @@ def merge_with_cells(out: OccupancyMap | None, total: int, codes, depths, values
     words = morton.split_codes(codes)
     if out is None or n_kernel == 0:
         return from_words(words, depths, values, like.resolution, like.params)
+    if n <= HOST_MERGE_MAX:  # small: merge on the host (no compilation for each shape)
+        keep = np.ones(total, bool)
+        keep[rows13] = False
+        words = np.concatenate([np.asarray(out.code)[:total][keep], words])
+        depths = np.concatenate([np.asarray(out.depth)[:total][keep], depths])
+        values = np.concatenate([np.asarray(out.log_odds)[:total][keep], values])
+        order = np.argsort(morton.join_codes(words), kind="stable")
+        return from_words(words[order], depths[order], values[order], like.resolution,
+                          like.params)
     oob = out.capacity
     none = np.zeros(0, np.int32)
     code, depth, log_odds, _ = _apply_brick_merges(
