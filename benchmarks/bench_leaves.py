@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -145,38 +144,39 @@ def child_transform(path: str, repeats: int) -> dict:
         times.append(time.perf_counter() - t0)
     row = dict(src_leaves=m.num_leaves, out_leaves=out.num_leaves,
                min_depth=int(np.asarray(m.depth)[:m.num_leaves].min()), first_s=first,
-               steady_s=float(np.median(times)),
-               peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+               steady_s=float(np.median(times)))
     return row
 
 
 def run_child(args: list[str], pythonpath: Path, limit_bytes: int | None = None,
               env_extra: dict | None = None, timeout_s: float = 1800):
     """Run ``python args`` as a child: ``(last JSON line or None, wall s, peak RSS MB, rc,
-    stderr lines)``; ``limit_bytes``: its address space (``ulimit -v``)."""
+    stderr lines)``; ``limit_bytes``: its address space (``ulimit -v``). Needs GNU time."""
     env = dict(os.environ, PYTHONPATH=str(pythonpath), OCTOMERGE_CACHE_DIR="off",
                **(env_extra or {}))
-    cmd = [sys.executable, *args]
+    # GNU time reports the peak RSS of the exec'd command alone (a forked child's own high-water
+    # mark would include this process's pages at the fork)
+    cmd = ["/usr/bin/time", "-f", "maxrss_kb=%M", sys.executable, *args]
     if limit_bytes:
         cmd = ["sh", "-c", f'ulimit -v {limit_bytes // 1024}; exec "$@"', "sh", *cmd]
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         t0 = time.perf_counter()
-        p = subprocess.Popen(cmd, env=env, stdout=out, stderr=err, cwd=str(pythonpath))
-        try:
-            _, status, usage = os.wait4(p.pid, 0)
-            rc = os.waitstatus_to_exitcode(status)
-        finally:
-            p.returncode = 0  # reaped by wait4
+        rc = subprocess.run(cmd, env=env, stdout=out, stderr=err, cwd=str(pythonpath),
+                            timeout=timeout_s).returncode
         wall = time.perf_counter() - t0
         out.seek(0)
         err.seek(0)
-        stdout, stderr = out.read(), err.read()
+        stdout, lines = out.read(), err.read().strip().splitlines()
+    peak = float("nan")
+    if lines and lines[-1].startswith("maxrss_kb="):
+        peak = int(lines.pop().split("=")[1]) / 1024
+    lines = [x for x in lines if not x.startswith("Command exited with non-zero status")]
     row = None
     for line in stdout.splitlines()[::-1]:
         if line.startswith("{"):
             row = json.loads(line)
             break
-    return row, wall, usage.ru_maxrss / 1024, rc, stderr.strip().splitlines()
+    return row, wall, peak, rc, lines
 
 
 # ----------------------------------------------------------------------------- main
@@ -224,24 +224,24 @@ def part_outdoor(tmp: Path, fractions, repeats: int, baseline: Path | None,
     for f in fractions:
         path = tmp / f"campus_{f}.bt"
         io.save(crop(site, f), path)
-        row, _, _, rc, err = run_child([str(HERE / "bench_leaves.py"), "--child", str(path),
-                                        "--repeats", str(repeats)], ROOT)
+        row, _, peak, rc, err = run_child([str(HERE / "bench_leaves.py"), "--child", str(path),
+                                           "--repeats", str(repeats)], ROOT)
         if row is None:
             print(f"{f:>6} failed: {err[-1] if err else rc}")
             continue
         us = row["steady_s"] / max(row["out_leaves"], 1) * 1e6
         line = (f"{f:>6} {row['src_leaves']:>11,} {row['min_depth']:>5} {row['out_leaves']:>11,} "
                 f"{row['first_s']:>8.2f} "
-                f"{row['steady_s']:>9.3f} {us:>8.2f} {row['peak_mb']:>8.0f}")
+                f"{row['steady_s']:>9.3f} {us:>8.2f} {peak:>8.0f}")
         if baseline:
-            old, wall, _, rc, err = run_child(
+            old, wall, old_peak, rc, err = run_child(
                 [str(HERE / "bench_leaves.py"), "--child", str(path), "--repeats", str(repeats)],
                 baseline, baseline_budget)
             if old is None:
                 why = next((e for e in err[::-1] if "Error" in e), f"exit {rc}")
                 line += f" | failed after {wall:.0f} s: {why[:60]}"
             else:
-                line += f" | {old['steady_s']:>16.3f} {old['peak_mb']:>8.0f}"
+                line += f" | {old['steady_s']:>16.3f} {old_peak:>8.0f}"
         print(line, flush=True)
 
 
