@@ -185,8 +185,8 @@ def run_child(args: list[str], pythonpath: Path, limit_bytes: int | None = None,
 def part_cli(tmp: Path) -> None:
     from octomerge_jax import io
 
-    print(f"\n# coarse free leaves, octomerge merge of a map with itself (fresh process, compile "
-          f"cache off, OCTOMERGE_MEMORY_BUDGET=2G)")
+    print("\n# coarse free leaves, octomerge merge of a map with itself (fresh process, compile "
+          "cache off, OCTOMERGE_MEMORY_BUDGET=2G)")
     print(f"{'map':<26} {'bytes':>6} {'command':<36} {'rc':>3} {'wall s':>7} {'peak MB':>8}  "
           f"result")
     for top, extra in ((1, []), (3, ["--rpy", "0", "0", str(YAW)])):

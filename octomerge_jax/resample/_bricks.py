@@ -21,7 +21,7 @@ from .._ops import bucket_capacity, quarter_octave_capacity
 from ..budget import check_allocation
 from ..map import OccupancyMap
 from ..se3 import check_rigid_transform
-from ._cells import KeyTransform, Refinement, key_transform, refine
+from ._cells import BRICK_DEPTH, KeyTransform, Refinement, key_transform, refine
 from ._interp import CORNERS, KEY_MAX, mode_index
 
 __all__ = [
@@ -35,7 +35,6 @@ __all__ = [
     "transformed_bounds",
 ]
 
-BRICK_DEPTH = 13  # a brick is a depth-13 node: 8^3 finest voxels
 BRICK_EDGE = 8  # voxels per brick edge
 BRICK_VOXELS = 512  # voxels per brick
 _D = morton.TREE_DEPTH

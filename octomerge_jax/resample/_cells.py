@@ -30,11 +30,11 @@ from ..budget import check_allocation
 from ..map import OccupancyMap
 from ._interp import KEY_MAX
 
-__all__ = ["CELL_BYTES", "KeyTransform", "Refinement", "SourceLeaves", "key_transform",
+__all__ = ["BRICK_DEPTH", "CELL_BYTES", "KeyTransform", "Refinement", "SourceLeaves", "key_transform",
            "refine", "source_leaves"]
 
 _D = morton.TREE_DEPTH
-BRICK_DEPTH = 13
+BRICK_DEPTH = 13  # a brick is a depth-13 node: 8^3 finest voxels
 _MARGIN = 0.05  # voxels; covers float32 rounding of the kernel's inverse map
 _LATTICE_TOL = 1e-7  # voxels: an axis whose inverse map lands this close to keys is snapped
 _CHUNK = 1 << 18  # cells classified per step (bounds the scratch memory)
