@@ -200,7 +200,9 @@ def run_size(tiles: int, repeats: int, method: str, dump: str | None) -> dict:
         jax.block_until_ready(raw.code)
         t2 = time.perf_counter()
         again = resample._kernel.run_kernel(plan)  # kernel again + prune
-        jax.block_until_ready(resample._merge.merge_whole_bricks(*again).code)
+        c = plan.cells
+        jax.block_until_ready(resample._merge.merge_with_cells(
+            *again, c.codes, c.depths, c.log_odds, m).code)
         t3 = time.perf_counter()
         plans.append(t1 - t0)
         kernels.append(t2 - t1)

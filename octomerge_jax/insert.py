@@ -48,6 +48,7 @@ import numpy as np
 
 from . import morton
 from ._ops import bucket_capacity, quarter_octave_capacity
+from .budget import check_allocation
 from .map import OccupancyMap
 from .tree import apply_voxel_updates
 
@@ -320,6 +321,9 @@ def compute_update(points, sensor_origin, resolution: float, max_range: float = 
             f"points: the rays span {(brick_dims * _BRICK).tolist()} voxels (> {MAX_BOX_CELLS} "
             "cells); pass a smaller max_range or split the scan")
     cap_b = plan.grow("bricks", n_bricks, 64)
+    # the box's int8 cells and their int32 work arrays, and the points' ray state
+    check_allocation(cap_b * _BRICK_CELLS * 9 + cap * 96,
+                     f"insert: a scan of {n} points needs a box of {n_bricks} bricks")
     padded = np.zeros((cap, 3), np.float32)
     padded[:n] = pts
     valid = np.arange(cap) < n

@@ -19,6 +19,7 @@ import numpy as np
 from . import morton
 from ._ops import bucket_capacity, cummax, cummin, cumsum, materialize, padding_rows, shift_down, shift_up
 from ._sort import lexsort_rows
+from .budget import check_allocation
 from .map import OccupancyMap, OccupancyParams, from_leaves, from_words
 
 __all__ = [
@@ -185,6 +186,8 @@ def expand(m: OccupancyMap, depth: int = _D, capacity: int | None = None) -> Occ
     cap = bucket_capacity(needed) if capacity is None else int(capacity)
     if cap < needed:
         raise ValueError(f"capacity {cap} is smaller than the {needed} expanded leaves")
+    check_allocation(cap * 32, f"expand: {needed} leaves at depth {depth} from a map of "
+                     f"{m.num_leaves} leaves at {m.resolution:g} m")
     return _expand(m, int(depth), cap)
 
 
@@ -390,6 +393,8 @@ def _apply(m: OccupancyMap, words, deltas, valid) -> OccupancyMap:
     num_fill = int(splits["num_fill"])
     needed = m.num_leaves - num_touched + num_fill + num_unique
     cap = bucket_capacity(max(needed, m.capacity))
+    check_allocation(3 * cap * 16, f"voxel updates: {needed} leaves after {num_unique} updated "
+                     f"voxels on a map of {m.num_leaves} leaves at {m.resolution:g} m")
     return _apply_updates(m, plan, splits, deltas, bucket_capacity(num_fill, 256), cap)
 
 

@@ -7,12 +7,14 @@ that re-run a kernel larger when a list proved short. Why these sizes: ``docs/de
 from __future__ import annotations
 
 from .._ops import bucket_capacity
+from ..budget import check_allocation
 
 # Host defaults, shares of the output's rows with a floor: gap cells are a few per cent of a
 # refinement at most, and leaves with gaps fewer than their cells.
 GAP_SHARE = 8  # gap-cell list: capacity / 8 rows
 GAP_LEAF_SHARE = 16  # the pair kernel's list of leaves with gaps: capacity / 16 rows
 GAP_MIN = 512  # floor of both lists, so small outputs never re-run for a few gaps
+ROW_BYTES = 192  # host/device bytes per output row at the pair kernel's peak (estimate)
 
 
 def default_gap_capacity(capacity: int) -> int | None:
@@ -70,12 +72,21 @@ def sized_output(run, guess: int, capacity: int | None, traced: bool, what: str)
     does not fit. Returns ``(map, report)``; raises ``ValueError`` naming ``what`` when no
     capacity is given under ``jit``/``vmap``."""
     if capacity is not None:
+        if not traced:
+            _check_rows(int(capacity), what)
         return run(int(capacity))
     if traced:
         raise ValueError(f"{what}: pass a static capacity= when calling under jit/vmap")
     cap = bucket_capacity(guess)
+    _check_rows(cap, what)
     out, rep = run(cap)
     while int(rep.refined_cells) > cap:  # a lower bound when it overflowed: re-run larger
         cap = bucket_capacity(int(rep.refined_cells))
+        _check_rows(cap, what)
         out, rep = run(cap)
     return out, rep
+
+
+def _check_rows(cap: int, what: str) -> None:
+    """``budget.check_allocation`` for an output of ``cap`` rows (``ROW_BYTES`` each)."""
+    check_allocation(cap * ROW_BYTES, f"{what}: the union of the maps' leaves ({cap} rows)")

@@ -19,11 +19,15 @@ that leaf's value). Differences from the published code (Appendix A.2):
   exactly (no float round trip through probability), so uniform regions stay prunable and
   whole-voxel moves are exact permutations.
 
-How: a host plan (``_bricks.py``) lists the destination *bricks* (depth-13 nodes, 8^3 voxels)
-the transformed source can reach and, for each, a 3x3x3 window of source bricks in a
-brick-indexed table of the source; a jitted loop (``_kernel.py``) resamples the destination
-bricks in fixed-size chunks with the blends of ``_interp.py``, prunes each brick inside itself
-and appends its leaves; whole-brick leaves are merged last (``_merge.py``).
+How: the host refines the destination top-down (``_cells.py``): a destination cell whose
+interpolation stencils all read one uniform source region is one output leaf of that value
+(resampled at its own scale), a cell whose stencils read nothing known is dropped, and only
+cells near a change of value are split, down to *bricks* (depth-13 nodes, 8^3 voxels). The
+brick plan (``_bricks.py``) gives each such brick a 3x3x3 window of source bricks in a
+brick-indexed table of the source; a jitted loop (``_kernel.py``) resamples the bricks in
+fixed-size chunks with the blends of ``_interp.py``, prunes each brick inside itself and
+appends its leaves; coarse cells and whole-brick leaves are merged last (``_merge.py``).
+Memory and time follow the output's leaves, not the volume it covers.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from ..se3 import check_rigid_transform
 from ._bricks import make_plan, transformed_bounds
 from ._interp import METHODS, SPACES, check_choice, sample
 from ._kernel import run_kernel
-from ._merge import merge_whole_bricks
+from ._merge import merge_with_cells
 
 __all__ = [
     "METHODS",
@@ -70,7 +74,9 @@ def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
     Returns a maximally pruned map with the source's resolution and parameters: destination
     voxels (depth 16) whose centre maps back into a known source leaf, log-odds clamped.
     Raises ``ValueError`` for an invalid transform, method, space or chunk size, or when the
-    transformed map would leave OctoMap's key range.
+    transformed map would leave OctoMap's key range; ``budget.MemoryBudgetError`` before an
+    allocation over the memory budget (an output of very many leaves: a coarse leaf moved by
+    a fraction of its size has a boundary of finest voxels).
     """
     check_choice(method, METHODS, "method")
     check_choice(space, SPACES, "space")
@@ -83,14 +89,16 @@ def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
     if m.num_leaves == 0:
         return m
     p_min, p_max = transformed_bounds(m, T)
-    limit = morton.KEY_OFFSET * res
+    limit = morton.KEY_OFFSET * res * (1 + 1e-12)  # rounding of a map spanning the key range
     if np.any(p_min < -limit) or np.any(p_max > limit):
         raise ValueError(
             f"T_dst_src: the transformed map spans {p_min.round(3).tolist()} .. "
             f"{p_max.round(3).tolist()} m, outside OctoMap's key range +-{limit:g} m at "
             f"resolution {res:g} m")
-    plan = make_plan(m, T, method, space, int(chunk_bricks), out_capacity)
-    out = merge_whole_bricks(*run_kernel(plan))
+    plan = make_plan(m, T, method, space, int(chunk_bricks), out_capacity, (p_min, p_max))
+    cells = plan.cells
+    kernel_out, total = run_kernel(plan) if plan.n_dest_bricks else (None, 0)
+    out = merge_with_cells(kernel_out, total, cells.codes, cells.depths, cells.log_odds, m)
     n = out.num_leaves
     cap = bucket_capacity(n)
     if cap < out.capacity:

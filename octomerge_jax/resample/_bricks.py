@@ -18,8 +18,10 @@ import numpy as np
 
 from .. import morton
 from .._ops import bucket_capacity, quarter_octave_capacity
+from ..budget import check_allocation
 from ..map import OccupancyMap
 from ..se3 import check_rigid_transform
+from ._cells import BRICK_DEPTH, KeyTransform, Refinement, key_transform, refine
 from ._interp import CORNERS, KEY_MAX, mode_index
 
 __all__ = [
@@ -33,7 +35,6 @@ __all__ = [
     "transformed_bounds",
 ]
 
-BRICK_DEPTH = 13  # a brick is a depth-13 node: 8^3 finest voxels
 BRICK_EDGE = 8  # voxels per brick edge
 BRICK_VOXELS = 512  # voxels per brick
 _D = morton.TREE_DEPTH
@@ -49,19 +50,15 @@ LOCAL_OFFSETS = np.stack([_compact9(np.arange(BRICK_VOXELS) >> a) for a in range
                          axis=-1).astype(np.int32)
 
 
-class KeyTransform(NamedTuple):
-    """The forward map ``u' = R u + t_key`` of ``T_dst_src`` in key units."""
-
-    R: np.ndarray  # (3, 3) float64 rotation
-    t_key: np.ndarray  # (3,) float64 translation [voxels]
-
-
 class SourceView(NamedTuple):
     """The brick-indexed view of the source map (``_source_view``)."""
 
     table: np.ndarray  # (rows * 512,) float32 log-odds, one brick per row, NaN = unknown
-    bricks: np.ndarray  # (n, 3) int64 key of every brick a leaf covers
-    brick_rows: np.ndarray  # (n,) int32 table row of each brick
+    bricks: np.ndarray  # (n, 3) int64 key of every brick holding leaves finer than a brick
+    brick_rows: np.ndarray  # (n,) int32 table row of each such brick (0..n-1)
+    coarse_start: np.ndarray  # (c,) uint64 first finest code of each leaf of depth <= 13
+    coarse_end: np.ndarray  # (c,) uint64 one past its last finest code
+    coarse_rows: np.ndarray  # (c,) int32 its table row (one constant row per value)
     nan_row: int  # the first all-NaN row of ``table``
     n_dense: int  # rows 0..n_dense-1 hold bricks with leaves finer than a brick
 
@@ -91,6 +88,7 @@ class Plan(NamedTuple):
     out_capacity: int  # rows of the kernel's first output buffers
     n_dest_bricks: int  # destination bricks with a non-empty source window
     n_dense_bricks: int  # source bricks stored as dense table rows
+    cells: Refinement  # uniform destination cells (not in the kernel) and the refinement
 
 
 @jax.jit
@@ -150,8 +148,10 @@ def _source_view(m: OccupancyMap) -> SourceView:
 
     ``table`` holds, in local Morton order, one dense row per brick that contains leaves finer
     than a brick, then one constant row per distinct value of the leaves that cover whole
-    bricks (depth <= 13), then NaN rows. Memory: 2 KiB per dense brick. Works on the int32
-    code words (hi, lo: 24 bits each; a brick is ``hi, lo >> 9``).
+    bricks (depth <= 13), then NaN rows. Coarse leaves are not expanded into their bricks: a
+    window brick finds its leaf by binary search (``_dest_windows``). Memory: 2 KiB per dense
+    brick plus 20 bytes per coarse leaf. Works on the int32 code words (hi, lo: 24 bits each;
+    a brick is ``hi, lo >> 9``).
     """
     n = m.num_leaves
     words = np.asarray(m.code)[:n]
@@ -166,6 +166,9 @@ def _source_view(m: OccupancyMap) -> SourceView:
     n_db = int(np.count_nonzero(first))
     uniq, inv = np.unique(lo[~fine], return_inverse=True)
     rows = quarter_octave_capacity(n_db + uniq.size + 1, minimum=64)
+    check_allocation(rows * BRICK_VOXELS * 4 + n * 24,
+                     f"transform_map: the source table of {n_db} dense bricks "
+                     f"(a map of {n} leaves at {m.resolution:g} m)")
     table = _aligned_full((rows, BRICK_VOXELS), np.nan, np.float32)
     itype = np.int32 if rows * BRICK_VOXELS < 2 ** 31 else np.int64
     flat = np.cumsum(first, dtype=itype)  # slot + 1, then the voxel index in the table
@@ -178,55 +181,73 @@ def _source_view(m: OccupancyMap) -> SourceView:
             span = 8 ** (_D - depth_l)
             table.reshape(-1, span)[flat[sel] // span] = v[sel, None]
     table[n_db:n_db + uniq.size] = uniq[:, None]
-    keys = [morton.codes_to_keys(morton.join_codes(np.stack([hi_w[first], lo_w[first]], -1)))
-            .astype(np.int64) >> 3]
-    brick_rows = [np.arange(n_db, dtype=np.int32)]
-    ck, cd = morton.join_codes(words[~fine]), depth[~fine]
-    crow = n_db + inv.reshape(-1).astype(np.int32)
-    for dl in np.unique(cd):  # a depth-d leaf covers 8^(13 - d) bricks
-        sel = cd == dl
-        w = 1 << (BRICK_DEPTH - int(dl))
-        g = np.stack(np.meshgrid(*[np.arange(w)] * 3, indexing="ij"), -1).reshape(-1, 3)
-        base = morton.codes_to_keys(ck[sel]).astype(np.int64) >> 3
-        keys.append((base[:, None, :] + g[None]).reshape(-1, 3))
-        brick_rows.append(np.repeat(crow[sel], g.shape[0]))
-    return SourceView(table.reshape(-1), np.concatenate(keys), np.concatenate(brick_rows),
-                      n_db + uniq.size, n_db)
+    keys = morton.codes_to_keys(morton.join_codes(np.stack([hi_w[first], lo_w[first]], -1))
+                                ).astype(np.int64) >> 3
+    cstart = morton.join_codes(words[~fine])
+    cend = cstart + (np.uint64(1) << (np.uint64(3) * (_D - depth[~fine]).astype(np.uint64)))
+    crow = (n_db + inv.reshape(-1)).astype(np.int32)
+    return SourceView(table.reshape(-1), keys, np.arange(n_db, dtype=np.int32), cstart, cend,
+                      crow, n_db + uniq.size, n_db)
 
 
-def _plan_dest_bricks(src_bkeys: np.ndarray, T_key: KeyTransform) -> np.ndarray:
-    """Morton-sorted ``(n, 3)`` int64 keys of destination bricks whose voxel centres may map
-    back into one of the source bricks ``src_bkeys (m, 3)``."""
-    R, t_key = T_key
-    if src_bkeys.shape[0] == 0:
-        return np.zeros((0, 3), np.int64)
-    centre = (src_bkeys.astype(np.float64) * BRICK_EDGE + 3.5) @ R.T + t_key
-    half = 4.0 * np.abs(R).sum(axis=1) + 1e-3  # image of the brick cube [8b - .5, 8b + 7.5]
-    bmin = np.floor_divide(np.ceil(centre - half), BRICK_EDGE).astype(np.int64)
-    bmax = np.floor_divide(np.floor(centre + half), BRICK_EDGE).astype(np.int64)
-    lo = np.maximum(bmin.min(axis=0), 0)
-    hi = np.minimum(bmax.max(axis=0), KEY_MAX // BRICK_EDGE - 1)
-    if np.any(hi < lo):
-        return np.zeros((0, 3), np.int64)
-    ext = hi - lo + 1
-    total = int(np.prod(ext))
-    itype = np.int32 if total < 2 ** 31 else np.int64
-    # candidates bmin + {0, 1, 2} per axis (an image spans <= 3 bricks), kept where <= bmax
-    # and inside the key range; linear index x + ext_x (y + ext_y z), built axis by axis
-    q = [(bmin[:, a, None] + np.arange(3) - lo[a]).astype(itype) for a in range(3)]
-    ok = [(q[a] <= bmax[:, a, None] - lo[a]) & (q[a] >= 0) & (q[a] < ext[a]) for a in range(3)]
-    lin = (q[2][:, :, None, None] * itype(ext[1]) + q[1][:, None, :, None]) * itype(ext[0]) \
-        + q[0][:, None, None, :]
-    lin = lin[ok[2][:, :, None, None] & ok[1][:, None, :, None] & ok[0][:, None, None, :]]
-    if total <= (1 << 28):  # a brick-level bitmap (1 byte per 512 voxels of the bounding box)
-        bitmap = np.zeros(total, bool)
-        bitmap[lin] = True
-        u = np.flatnonzero(bitmap)
-    else:
-        u = np.unique(lin)
-    keys = np.stack([u % ext[0], (u // ext[0]) % ext[1], u // (ext[0] * ext[1])], axis=-1) + lo
-    order = np.argsort(morton.keys_to_codes(keys.astype(np.uint64) * BRICK_EDGE), kind="stable")
-    return keys[order]
+def _brick_grid(view: SourceView, q_lo, q_hi):
+    """A dense grid of table rows over the bricks ``q_lo..q_hi`` (inclusive ``(3,)`` keys) when
+    it is small (4 B per brick, at most ``max(2^22, 8 x dense bricks)``): dense bricks and the
+    coarse leaves of at most 8^3 bricks painted in. Returns ``(grid (z, y, x) int32, lo,
+    painted (c,) bool)`` or ``None``; ``painted`` marks the coarse leaves wholly in the grid."""
+    ext = q_hi - q_lo + 1
+    if np.any(ext <= 0) or np.prod(ext) > max(1 << 22, 8 * view.bricks.shape[0]):
+        return None
+    grid = np.full(tuple(ext[::-1]), view.nan_row, np.int32)
+    r = view.bricks - q_lo
+    ins = np.all((r >= 0) & (r < ext), axis=1)
+    grid[r[ins, 2], r[ins, 1], r[ins, 0]] = view.brick_rows[ins]
+    painted = np.zeros(view.coarse_start.size, bool)
+    if view.coarse_start.size:
+        width = np.cbrt((view.coarse_end - view.coarse_start).astype(np.float64) / 512)
+        width = np.rint(width).astype(np.int64)  # bricks per edge
+        base = morton.codes_to_keys(view.coarse_start).astype(np.int64) >> 3
+        inside = np.all((base >= q_lo) & (base + width[:, None] - 1 <= q_hi), axis=1)
+        for w in np.unique(width[inside & (width <= 8)]):
+            sel = np.flatnonzero(inside & (width == w))
+            painted[sel] = True
+            g = np.stack(np.meshgrid(*[np.arange(w)] * 3, indexing="ij"), -1).reshape(-1, 3)
+            k = (base[sel, None, :] + g[None] - q_lo).reshape(-1, 3)
+            grid[k[:, 2], k[:, 1], k[:, 0]] = np.repeat(view.coarse_rows[sel], g.shape[0])
+    return grid, q_lo, painted
+
+
+def _window_rows(q, view: SourceView, grid) -> np.ndarray:
+    """Table rows of source bricks with keys ``q (..., 3)`` int64 (any, in range or not):
+    a dense row, the constant row of the coarse leaf covering the brick, or ``view.nan_row``.
+    ``grid``: ``_brick_grid``'s result or ``None``."""
+    shape = q.shape[:-1]
+    q = q.reshape(-1, 3)
+    rows = np.full(q.shape[0], view.nan_row, np.int32)
+    ok = np.all((q >= 0) & (q < KEY_MAX // BRICK_EDGE), axis=1)
+    rest = np.ones(view.coarse_start.size, bool)
+    if grid is not None:
+        g, lo, painted = grid
+        r = q - lo
+        inside = np.all((r >= 0) & (r < g.shape[::-1]), axis=1)
+        r = np.where(inside[:, None], r, 0)
+        rows = np.where(inside, g[r[:, 2], r[:, 1], r[:, 0]], rows)
+        rest = ~painted
+    elif view.bricks.shape[0]:  # sparse dense bricks: binary search by Morton code
+        bcode = morton.keys_to_codes(view.bricks.astype(np.uint64))
+        order = np.argsort(bcode)
+        qc = morton.keys_to_codes(np.where(ok[:, None], q, 0).astype(np.uint64))
+        i = np.minimum(np.searchsorted(bcode[order], qc), bcode.size - 1)
+        hit = ok & (bcode[order][i] == qc)
+        rows = np.where(hit, view.brick_rows[order][i], rows)
+    if rest.any():  # the other coarse leaves: the one whose range holds the brick
+        cs, ce, cr = view.coarse_start[rest], view.coarse_end[rest], view.coarse_rows[rest]
+        need = ok & (rows == view.nan_row)
+        code = morton.keys_to_codes((q[need] << 3).astype(np.uint64))
+        j = np.searchsorted(cs, code, side="right") - 1
+        hit = (j >= 0) & (ce[np.maximum(j, 0)] > code)
+        rows[need] = np.where(hit, cr[np.maximum(j, 0)], view.nan_row)
+    return rows.reshape(shape)
 
 
 def _dest_windows(dest, T_key: KeyTransform, view: SourceView):
@@ -239,54 +260,49 @@ def _dest_windows(dest, T_key: KeyTransform, view: SourceView):
     neighbours span <= 15 keys from at most 7 into the first brick.
     """
     R, t_key = T_key
-    bricks, brick_rows, nan_row = view.bricks, view.brick_rows, view.nan_row
     n = dest.shape[0]
-    if n == 0 or bricks.shape[0] == 0:
-        return np.zeros((n, 3), np.int64), np.full((n, 27), nan_row, np.int32)
+    if n == 0:
+        return np.zeros((n, 3), np.int64), np.full((n, 27), view.nan_row, np.int32)
     umin = np.full((n, 3), np.inf)
     for corner in CORNERS:  # the extremes of an affine map over a cube are at its corners
         k = (dest * BRICK_EDGE + 7 * corner).astype(np.float64)
         umin = np.minimum(umin, (k - t_key) @ R)  # R^T (k - t_key), row-wise
     wb = np.floor_divide(np.floor(umin - _WINDOW_MARGIN).astype(np.int64), BRICK_EDGE)
-    # Window bricks as linear indices into the source bricks' bounding box.
-    lo = bricks.min(axis=0)
-    ext = bricks.max(axis=0) - lo + 1
-    q = [wb[:, a, None] + np.arange(3) - lo[a] for a in range(3)]  # (n, 3) per axis
-    inside = [(qa >= 0) & (qa < ext[a]) for a, qa in enumerate(q)]
-    lin = ((q[2][:, :, None, None] * ext[1] + q[1][:, None, :, None]) * ext[0]
-           + q[0][:, None, None, :])
-    ok = inside[2][:, :, None, None] & inside[1][:, None, :, None] & inside[0][:, None, None, :]
-    lin, ok = lin.reshape(n, 27), ok.reshape(n, 27)  # window brick x + 3 y + 9 z
-    src = ((bricks[:, 2] - lo[2]) * ext[1] + bricks[:, 1] - lo[1]) * ext[0] + bricks[:, 0] - lo[0]
-    if np.prod(ext) <= max(1 << 22, 8 * src.size):  # a dense grid of rows (4 B per brick)
-        grid = np.full(int(np.prod(ext)), nan_row, np.int32)
-        grid[src] = brick_rows
-        rows = grid[np.where(ok, lin, 0)]
-    else:  # sparse source: binary search in the sorted bricks
-        order = np.argsort(src)
-        i = np.minimum(np.searchsorted(src[order], lin), src.size - 1)
-        ok &= src[order][i] == lin
-        rows = brick_rows[order][i]
-    return wb, np.where(ok, rows, nan_row).astype(np.int32)
+    g = CORNERS_27  # window brick x + 3 y + 9 z
+    rows = np.empty((n, 27), np.int32)
+    grid = _brick_grid(view, wb.min(axis=0), wb.max(axis=0) + 2)
+    step = 1 << 16  # bricks per block (bounds the scratch memory)
+    for s in range(0, n, step):
+        rows[s:s + step] = _window_rows(wb[s:s + step, None, :] + g[None], view, grid)
+    return wb, rows
 
 
-def _key_transform(T, resolution) -> KeyTransform:
-    """``T (4, 4)`` in key units, for voxel-centre coordinates ``u = x / res + 32768 - 0.5``."""
-    R = T[:3, :3]
-    o = morton.KEY_OFFSET - 0.5
-    t_key = T[:3, 3] / resolution + o - R @ np.full(3, o)
-    return KeyTransform(R, t_key)
+# (27, 3) offsets of the window bricks, index x + 3 y + 9 z
+CORNERS_27 = np.array([[i % 3, (i // 3) % 3, i // 9] for i in range(27)], np.int64)
 
 
 def make_plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: int,
-              out_capacity: int | None) -> Plan:
-    """Destination bricks, the source's brick table and the key-frame constants for
-    ``transform_map(m, T, method, space=space)`` with ``chunk`` bricks per loop step;
-    ``out_capacity`` ``None``: a guess from the leaf and brick counts."""
-    T_key = _key_transform(T, m.resolution)
+              out_capacity: int | None, bounds=None) -> Plan:
+    """Destination cells and bricks (``_cells.refine``), the source's brick table and the
+    key-frame constants for ``transform_map(m, T, method, space=space)`` with ``chunk`` bricks
+    per loop step; ``out_capacity`` ``None``: a guess from the leaf and brick counts;
+    ``bounds``: ``transformed_bounds(m, T)`` if known. Raises ``MemoryBudgetError`` before
+    allocating over the memory budget."""
+    T_key = key_transform(T, m.resolution)
     R, t_key = T_key
+    cells = refine(m, T_key, *(transformed_bounds(m, T) if bounds is None else bounds))
+    dest = cells.bricks
+    n_b = dest.shape[0]
+    b_cap = max(bucket_capacity(n_b, minimum=1024), chunk)
+    b_cap = int(math.ceil(b_cap / chunk) * chunk)
+    if out_capacity is None:
+        out_capacity = quarter_octave_capacity(2 * m.num_leaves + 8 * n_b, minimum=1 << 15)
+    # windows (host), brick inputs, first output buffers and one chunk's work arrays
+    check_allocation(n_b * 27 * 24 + b_cap * 33 * 4 + 2 * int(out_capacity) * 16
+                     + chunk * BRICK_VOXELS * 8 * 16,
+                     f"transform_map: resampling {n_b} destination bricks (a map of "
+                     f"{m.num_leaves} leaves at {m.resolution:g} m)")
     view = _source_view(m)
-    dest = _plan_dest_bricks(view.bricks, T_key)
     wb, rows = _dest_windows(dest, T_key, view)
     live = np.any(rows != view.nan_row, axis=1)  # an all-unknown window gives nothing
     dest, wb, rows = dest[live], wb[live], rows[live]
@@ -306,11 +322,9 @@ def make_plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: in
     wbp[:n_b] = wb
     wrows = np.full((b_cap, 27), view.nan_row * BRICK_VOXELS, np.int32)
     wrows[:n_b] = rows * BRICK_VOXELS
-    if out_capacity is None:
-        out_capacity = quarter_octave_capacity(2 * m.num_leaves + 8 * n_b, minimum=1 << 15)
     inputs = KernelInputs(
         m, _to_device(view.table, m.log_odds), jnp.asarray(R.T, jnp.float32),
         jnp.asarray(c, jnp.float32), jnp.asarray(K_d, jnp.int32), jnp.asarray(K_s, jnp.int32),
         jnp.asarray(bkeys), jnp.asarray(wbp), jnp.asarray(wrows.reshape(-1)), jnp.int32(n_b),
         jnp.int32(mode_index(method, space)))
-    return Plan(inputs, chunk, int(out_capacity), n_b, view.n_dense)
+    return Plan(inputs, chunk, int(out_capacity), n_b, view.n_dense, cells)

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 from .. import morton
 from .._ops import quarter_octave_capacity
+from ..budget import check_allocation
 from ..map import OccupancyMap
 from ._bricks import BRICK_EDGE, BRICK_VOXELS, LOCAL_OFFSETS, KernelInputs, Plan
 from ._interp import KEY_MAX, blend
@@ -244,8 +245,11 @@ def run_kernel(plan: Plan) -> tuple[OccupancyMap, int]:
         if start >= n_chunks:
             break
         estimate = offset / max(start, 1) * n_chunks * 1.05 + plan.chunk * BRICK_VOXELS
-        bufs = _grow_output(bufs, *fills, capacity=quarter_octave_capacity(
-            max(estimate, 1.25 * bufs.code.shape[0]), minimum=64))
+        grown = quarter_octave_capacity(max(estimate, 1.25 * bufs.code.shape[0]), minimum=64)
+        check_allocation((grown + bufs.code.shape[0]) * 16,
+                         f"transform_map: output buffers of {grown} leaves at "
+                         f"{plan.inputs.m.resolution:g} m")
+        bufs = _grow_output(bufs, *fills, capacity=grown)
     if misses:
         raise RuntimeError(f"transform_map: {misses} interpolation neighbours fell outside "
                            "their planned source window (a bug; please report the transform)")
