@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Callable, Iterator, Sequence
 
 from ..hostmem import child_env
+from .cache import worker_env
 
 __all__ = ["map_on_dask"]
 
@@ -17,11 +18,12 @@ def map_on_dask(func: Callable, items: Sequence, *args, scheduler=None, workers:
 
     ``scheduler``: a scheduler address (``tcp://host:8786``) or a ``distributed.Client`` (left
     open); else a local cluster of ``workers`` single-thread worker processes is started (its
-    workers keep XLA:CPU scratch memory as this process does: ``hostmem.child_env``) and closed
-    when the iteration ends. Raises ``RuntimeError`` if ``distributed`` is not installed.
+    workers keep XLA:CPU scratch memory as this process does, ``hostmem.child_env``, and load
+    compiled kernels from its compilation cache, ``cache.worker_env``) and closed when the
+    iteration ends. Raises ``RuntimeError`` if ``distributed`` is not installed.
     """
     try:
-        from distributed import Client, LocalCluster, as_completed
+        from distributed import Client, LocalCluster, as_completed, wait
     except ImportError:
         raise RuntimeError('running on a Dask cluster needs dask.distributed: '
                            'pip install "dask[distributed]"') from None
@@ -32,12 +34,19 @@ def map_on_dask(func: Callable, items: Sequence, *args, scheduler=None, workers:
         client, own_client = Client(scheduler), True
     else:
         own_cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, env=child_env())
+                                   dashboard_address=None, env={**child_env(), **worker_env()})
         client, own_client = Client(own_cluster), True
     try:
-        futures = [client.submit(func, item, *args, key=key(item), pure=False) for item in items]
+        futures = [client.submit(func, item, *args, key=key(item), pure=False) for item in items[:1]]
+        pending = as_completed(futures)
+        if own_cluster is not None and worker_env():
+            # the first task compiles the kernels into the shared cache; the rest, submitted when
+            # it is done, load them instead of compiling the same programs side by side
+            wait(futures)
+        futures += [client.submit(func, item, *args, key=key(item), pure=False) for item in items[1:]]
+        pending.update(futures[1:])
         by_key = {f.key: item for f, item in zip(futures, items)}
-        for fut in as_completed(futures):
+        for fut in pending:
             item = by_key[fut.key]
             try:
                 result = fut.result()
