@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 EXTRAS ?= test
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test warmup bench clean
 
 $(BIN)/.installed-$(EXTRAS): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,6 +17,10 @@ setup: $(BIN)/.installed-$(EXTRAS)
 ## demo: set up and run the main job on built-in data
 demo: setup
 	$(BIN)/octomerge demo --out-dir octomerge-demo
+
+## warmup: compile the merge kernels into the CLI's persistent cache (once; later merges start warm)
+warmup: setup
+	$(BIN)/octomerge warmup
 
 ## test: set up and run the test suite (what CI runs)
 test: setup

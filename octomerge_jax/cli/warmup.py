@@ -12,8 +12,8 @@ from pathlib import Path
 from ._common import CliError
 
 EPILOG = """examples:
-  octomerge warmup                       # the built-in room pair at 0.1, 0.05, 0.025 m
-  octomerge warmup --res 0.05            # one size only
+  octomerge warmup                       # the built-in room pair, 0.1 to 0.025 m
+  octomerge warmup --res 0.0125          # large maps (~0.5M leaves)
   octomerge warmup robot1.bt robot2.bt   # exactly the programs merging these two maps needs
 
 A merge's first call is mostly XLA compilation of a few dozen programs, one set per capacity
@@ -36,9 +36,9 @@ def register(subparsers) -> None:
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("maps", type=Path, nargs="*", metavar="MAP",
                    help="two .bt/.ot maps to compile for (default: the built-in room pair)")
-    p.add_argument("--res", type=float, nargs="+", default=[0.1, 0.05, 0.025], metavar="M",
-                   help="resolutions [m] of the built-in room pair (default 0.1 0.05 0.025: "
-                        "about 5k, 21k and 105k leaves per map)")
+    p.add_argument("--res", type=float, nargs="+", default=[0.1, 0.07, 0.05, 0.035, 0.025], metavar="M",
+                   help="resolutions [m] of the built-in room pair (default 0.1 0.07 0.05 0.035 0.025: "
+                        "about 5k to 105k leaves per map, doubling)")
     p.add_argument("--refine", nargs="+", default=["icp", "none"], metavar="MODE",
                    help="refinement modes to compile (default: icp none)")
     p.set_defaults(func=run)
