@@ -79,3 +79,11 @@ def test_warmup_rejects_bad_arguments(tmp_path, capsys):
     assert cli.main(["warmup", str(tmp_path / "a.bt")]) == 2
     assert "two maps" in capsys.readouterr().err
     assert cli.main(["warmup", "--res", "-1"]) == 2
+
+
+def test_warmup_merges_the_room_pair_into_the_cache(capsys):
+    """The smallest built-in size, ``refine none``: one merge, reported with its program count."""
+    assert cli.main(["warmup", "--res", "0.2", "--refine", "none"]) == 0
+    out = capsys.readouterr().out
+    assert "room at 0.2 m" in out and "refine none" in out and "programs compiled" in out
+    assert f"cache: {cache.worker_env()['JAX_COMPILATION_CACHE_DIR']}" in out
