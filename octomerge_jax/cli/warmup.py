@@ -53,25 +53,32 @@ def _pairs(args):
     from ..sim import small_room_map, small_room_voxels
 
     if args.maps:
-        if len(args.maps) != 2:
-            raise CliError(f"give two maps (MAP1 MAP2), got {len(args.maps)}", exit_code=2)
-        for path in args.maps:
-            if not path.is_file():
-                raise CliError(f"{path}: no such file")
         yield f"{args.maps[0].name} + {args.maps[1].name}", load(args.maps[0]), load(args.maps[1]), np.eye(4)
         return
     T_true = transform_from_xyz_rpy(*_XYZ_RPY_TRUE)
     guess = transform_from_xyz_rpy(*(a + b for a, b in zip(_XYZ_RPY_TRUE, _GUESS_ERROR)))
     for res in args.res:
-        if not (res > 0 and math.isfinite(res)):
-            raise CliError(f"--res {res}: a resolution must be a positive number of metres", exit_code=2)
         voxels = small_room_voxels(res)
         m1 = small_room_map((-1.0, 3.0), res, voxels=voxels)
         m2 = small_room_map((0.8, 9.0), res, T_true, voxels=voxels)
         yield f"room at {res:g} m", m1, m2, guess
 
 
+def _check(args) -> None:
+    """Raise ``CliError`` for arguments that cannot work, before anything heavy is imported."""
+    if args.maps:
+        if len(args.maps) != 2:
+            raise CliError(f"give two maps (MAP1 MAP2), got {len(args.maps)}", exit_code=2)
+        for path in args.maps:
+            if not path.is_file():
+                raise CliError(f"{path}: no such file")
+    for res in args.res:
+        if not (res > 0 and math.isfinite(res)):
+            raise CliError(f"--res {res}: a resolution must be a positive number of metres", exit_code=2)
+
+
 def run(args) -> int:
+    _check(args)
     import jax
 
     from ..pipeline import MergeConfig, MergeError, merge
