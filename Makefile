@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test bench notebooks clean
+.PHONY: setup demo test warmup bench notebooks clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,10 @@ setup: $(BIN)/.installed-test
 ## demo: set up and run the main job on built-in data
 demo: $(BIN)/.installed-core
 	$(BIN)/octomerge demo --out-dir octomerge-demo
+
+## warmup: compile the merge kernels into the CLI's persistent cache (once; later merges start warm)
+warmup: setup
+	$(BIN)/octomerge warmup
 
 ## test: set up and run the test suite (what CI runs)
 test: $(BIN)/.installed-test

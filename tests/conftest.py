@@ -1,14 +1,53 @@
 """Strict test settings: promotions must be explicit and warnings are errors (pyproject),
-while the library itself touches no global JAX config."""
+while the library itself touches no global JAX config.
+
+One JAX persistent compilation cache per test run, shared by the xdist workers and by the CLI
+subprocesses the tests start: a kernel compiled by one worker is loaded, not compiled again, by
+the others (docs/design.md, "Compile cache and warm-up"). ``OCTOMERGE_TEST_CACHE_DIR`` names a
+directory to keep it in across runs (``off``: no cache); by default it is a temporary directory
+removed at the end of the run."""
 
 import os
+import shutil
+import tempfile
 
 import jax
 import pytest
 
-# the CLI turns on JAX's persistent compilation cache; in-process CLI tests must not change the
-# test process's JAX config or write to the home directory (tests/test_cli_io.py checks the cache)
-os.environ["OCTOMERGE_CACHE_DIR"] = "off"
+_KEY = "octomerge_test_xla_cache"
+
+
+def _cache_dir(config) -> str | None:
+    """The run's cache directory: made by the controller (or a run without xdist), handed to
+    the workers through ``workerinput``."""
+    if hasattr(config, "workerinput"):
+        return config.workerinput.get(_KEY)
+    wanted = os.environ.get("OCTOMERGE_TEST_CACHE_DIR")
+    if wanted is not None:
+        if wanted.strip().lower() in ("", "off", "0", "none"):
+            return None
+        os.makedirs(wanted, exist_ok=True)
+        return wanted
+    path = tempfile.mkdtemp(prefix="octomerge-test-xla-")
+    config.add_cleanup(lambda: shutil.rmtree(path, ignore_errors=True))
+    return path
+
+
+def pytest_configure(config):
+    path = _cache_dir(config)
+    config._octomerge_xla_cache = path
+    if path:
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    # CLI subprocesses use the same cache; in-process CLI calls find JAX's cache already set and
+    # change nothing (tests/test_cli_io.py checks the CLI's own cache setting in a subprocess)
+    os.environ["OCTOMERGE_CACHE_DIR"] = path or "off"
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node):
+    """xdist controller: give each worker the run's cache directory."""
+    node.workerinput[_KEY] = node.config._octomerge_xla_cache
 
 
 @pytest.fixture(autouse=True)

@@ -27,7 +27,7 @@ GOOD = (HEADER + "maps/a.ot,maps/b.ot,ab.ot" + ZERO + "maps/b.ot,maps/a.ot,sub/b
 
 
 def octomerge(*args, timeout=TIMEOUT_S):
-    env = {**os.environ, "OCTOMERGE_CACHE_DIR": "off"}
+    env = dict(os.environ)  # the run's XLA cache (tests/conftest.py)
     return subprocess.run([sys.executable, "-m", "octomerge_jax", *map(str, args)], capture_output=True,
                           text=True, timeout=timeout, env=env)
 

@@ -22,22 +22,20 @@ TIMEOUT_S = 600
 
 @pytest.fixture(scope="module")
 def d(tmp_path_factory):
-    """Two overlapping crops of the example room (0.1 m) and an XLA cache shared by this
-    module's command runs (same kernels, compiled once)."""
+    """Two overlapping crops of the example room (0.1 m); the command runs share the test run's
+    XLA cache (tests/conftest.py), so their kernels are compiled once."""
     d = tmp_path_factory.mktemp("merge_options")
     room = om.example_map()
     c = room.leaves().centers
     for name, mask in (("a", (c[:, 0] < 0.5) & (c[:, 1] < 0.5)), ("b", (c[:, 0] > -0.5) & (c[:, 1] < 0.5))):
         L = room.leaves()
         om.save(om.from_leaves(L.codes[mask], L.depths[mask], L.log_odds[mask], 0.1), d / f"{name}.ot")
-    (d / "xla").mkdir()
     return d
 
 
 def octomerge(d, *args):
-    env = {**os.environ, "OCTOMERGE_CACHE_DIR": str(d / "xla")}
     return subprocess.run([sys.executable, "-m", "octomerge_jax", "merge", *map(str, args)],
-                          capture_output=True, text=True, timeout=TIMEOUT_S, env=env)
+                          capture_output=True, text=True, timeout=TIMEOUT_S)
 
 
 def test_rule_max_and_sum_of_a_map_with_itself(d):

@@ -106,6 +106,7 @@ def test_child_env_gives_workers_the_reuse(monkeypatch):
     import os
 
     from octomerge_jax import hostmem
+    from octomerge_jax.cli.cache import worker_env
     from octomerge_jax.cli.dask_runner import map_on_dask
 
     def faults(env):
@@ -135,4 +136,4 @@ def test_child_env_gives_workers_the_reuse(monkeypatch):
     monkeypatch.setattr(distributed, "LocalCluster", fake_cluster)
     with pytest.raises(Stop):
         list(map_on_dask(len, [], workers=2, key=str))
-    assert seen["env"] == hostmem.child_env() and seen["processes"]
+    assert seen["env"] == {**hostmem.child_env(), **worker_env()} and seen["processes"]

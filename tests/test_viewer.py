@@ -19,7 +19,7 @@ from browser import Browser, find_chromium
 
 @pytest.fixture(scope="module")
 def room():
-    return om.examples.example_map()
+    return om.example_map()
 
 
 def test_voxel_boxes_are_the_occupied_leaves(room):

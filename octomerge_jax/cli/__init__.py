@@ -2,6 +2,9 @@
 
 Each subcommand lives in its own module in this package and exposes
 ``register(subparsers) -> None`` (adding a parser whose ``func`` default is ``run(args) -> int``).
+Only the module of the command being run is imported (with JAX and the pipeline behind it);
+``octomerge --help`` lists the commands from ``COMMANDS`` without importing any:
+docs/design.md, "Start-up: lazy imports".
 """
 
 from __future__ import annotations
@@ -11,30 +14,56 @@ import importlib
 import os
 import sys
 
-from pathlib import Path
-
-import jax
-
-from .. import __version__
 from ..budget import MemoryBudgetError
 from ..hostmem import reuse_host_memory
 from ._common import CliError
+from .cache import enable_compilation_cache
 
-# Subcommand modules, in the order ``--help`` lists them.
-_COMMANDS = ["merge", "merge_many", "batch", "demo", "info", "convert", "build", "export", "dump_config", "view"]
+# command -> (module in this package, the one-line summary ``octomerge --help`` shows; the same
+# text as the module's ``add_parser(help=...)``, checked by tests/test_startup.py), in --help order
+COMMANDS = {
+    "merge": ("merge", "merge two maps (ICP-refined transform, trilinear resampling, log-odds fusion)"),
+    "merge-many": ("merge_many", "merge N maps into one consistent map (pairwise registration + pose graph)"),
+    "batch": ("batch", "merge many pairs from a CSV manifest (resumable, Dask cluster optional)"),
+    "demo": ("demo", "simulate two robots, merge their maps from a wrong guess, write figures"),
+    "info": ("info", "print resolution, leaves per depth, occupancy, bounds of a map"),
+    "convert": ("convert", "convert a map between .bt and .ot"),
+    "build": ("build", "build a .bt/.ot map from scans (.graph/.log/.ply/.pcd), like graph2tree"),
+    "export": ("export", "write voxels as .glb/.ply/.obj/.pcd, or a merge's transform as TUM"),
+    "dump-config": ("dump_config", "print all settings (TOML) for --config"),
+    "view": ("view", "live 3-D view of maps in the web browser (viser)"),
+    "warmup": ("warmup", "compile the merge kernels for common map sizes into the persistent cache"),
+}
 
 
-def build_parser() -> argparse.ArgumentParser:
+class _VersionAction(argparse.Action):
+    """``--version``: reads the installed version only when asked (importlib.metadata is slow)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from .. import __version__
+
+        parser.exit(message=f"{parser.prog} {__version__}\n")
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``octomerge`` parser. ``command``: import and register only that subcommand's module
+    (the others get a placeholder parser with their summary); ``None`` registers every command."""
     parser = argparse.ArgumentParser(
         prog="octomerge",
         description="Merge OctoMap occupancy octrees (.bt/.ot) built by different robots.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument("--version", action=_VersionAction, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in _COMMANDS:
+    for name, (module_name, summary) in COMMANDS.items():
+        if command is not None and name != command:
+            sub.add_parser(name, help=summary, add_help=False)
+            continue
         try:
-            module = importlib.import_module(f"{__name__}.{name}")
+            module = importlib.import_module(f"{__name__}.{module_name}")
         except ModuleNotFoundError as err:  # a subcommand whose optional dependency is missing
             if err.name and err.name.startswith(__name__):
                 raise
@@ -43,33 +72,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def enable_compilation_cache() -> str | None:
-    """Turn on JAX's persistent compilation cache for this process (the command line only:
-    importing the library changes no JAX setting). Compiled kernels are reused by later runs,
-    which cuts a merge's first call (mostly XLA compilation) on the next invocation.
-
-    Directory: ``$OCTOMERGE_CACHE_DIR`` if set (``""`` or ``"off"`` disables), else
-    ``$XDG_CACHE_HOME/octomerge_jax/xla`` (``~/.cache/...``). A cache directory the user already
-    gave JAX (``JAX_COMPILATION_CACHE_DIR``) is left alone. Returns the directory in use or
-    ``None``; a directory that cannot be created disables the cache silently."""
-    if jax.config.jax_compilation_cache_dir:
-        return jax.config.jax_compilation_cache_dir
-    path = os.environ.get("OCTOMERGE_CACHE_DIR")
-    if path is None:
-        base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-        path = str(Path(base) / "octomerge_jax" / "xla")
-    if path.strip().lower() in ("", "off", "0", "none"):
-        return None
-    try:
-        Path(path).mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return None
-    jax.config.update("jax_compilation_cache_dir", path)
-    return path
+def _command_of(argv: list[str]) -> str | None:
+    """The subcommand named in ``argv`` (the first word that is not an option), if it is one."""
+    first = next((a for a in argv if not a.startswith("-")), None)
+    return first if first in COMMANDS else None
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = _command_of(argv)
+    parser = build_parser(command if command is not None else "")
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help()

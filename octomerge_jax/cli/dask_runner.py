@@ -6,6 +6,7 @@ import time
 from typing import Callable, Iterator, Sequence
 
 from ..hostmem import child_env
+from .cache import worker_env
 
 __all__ = ["NoWorkersError", "SchedulerError", "map_on_dask"]
 
@@ -51,7 +52,8 @@ def map_on_dask(func: Callable, items: Sequence, *args, scheduler=None, workers:
             client, own_client = Client(scheduler, timeout=timeout_s), True
         else:
             own_cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                       scheduler_port=0, dashboard_address="127.0.0.1:0", env=child_env())
+                                       scheduler_port=0, dashboard_address="127.0.0.1:0",
+                                       env={**child_env(), **worker_env()})
             client, own_client = Client(own_cluster, timeout=timeout_s), True
     except (OSError, TimeoutError) as err:
         if own_cluster is not None:
@@ -60,7 +62,14 @@ def map_on_dask(func: Callable, items: Sequence, *args, scheduler=None, workers:
         reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
         raise SchedulerError(f"cannot reach {what} within {timeout_s:g} s: {reason}") from None
     try:
-        futures = [client.submit(func, item, *args, key=key(item), pure=False) for item in items]
+        futures = [client.submit(func, item, *args, key=key(item), pure=False) for item in items[:1]]
+        if own_cluster is not None and worker_env():
+            # the first task compiles the kernels into the shared cache; the rest, submitted when
+            # it is done, load them instead of compiling the same programs side by side (no
+            # waiting without workers: the loop below then fails the items after timeout_s)
+            while futures and not futures[0].done() and client.nthreads():
+                time.sleep(0.2)
+        futures += [client.submit(func, item, *args, key=key(item), pure=False) for item in items[1:]]
         by_key = {f.key: item for f, item in zip(futures, items)}
         pending, alone_since = set(futures), None
         while pending:

@@ -27,14 +27,15 @@ def occupied_points(occupancy_map, min_log_odds=None, max_points_per_leaf: int |
     sub-grid; 1 gives the thesis's one centre per leaf). Points come in Morton order of the
     leaves. Raises ``ValueError`` if more than ``max_points`` points would be produced.
     """
-    leaves = occupancy_map.leaves()
     thr = occupancy_map.params.occupancy_threshold_log_odds if min_log_odds is None else min_log_odds
     thr = np.float32(np.asarray(thr))
-    occ = leaves.log_odds >= thr
     if max_points_per_leaf is not None and int(max_points_per_leaf) < 1:
         raise ValueError(f"max_points_per_leaf must be >= 1, got {max_points_per_leaf!r}")
-    depths = leaves.depths[occ].astype(np.int64)
-    keys = leaves.keys[occ].astype(np.int64)
+    # only the occupied leaves are decoded (not ``leaves()``: every leaf's keys and centres)
+    n = occupancy_map.num_leaves
+    occ = np.asarray(occupancy_map.log_odds)[:n].astype(np.float32) >= thr
+    depths = np.asarray(occupancy_map.depth)[:n][occ].astype(np.int64)
+    keys = morton.codes_to_keys(morton.join_codes(np.asarray(occupancy_map.code)[:n][occ])).astype(np.int64)
     if max_points_per_leaf is None:
         levels = morton.TREE_DEPTH - depths
     else:
@@ -45,6 +46,8 @@ def occupied_points(occupancy_map, min_log_odds=None, max_points_per_leaf: int |
         raise ValueError(f"occupied_points: {total} points exceed max_points={max_points} (coarse "
                          "occupied leaves expand to 8^(16-depth) voxels); pass max_points_per_leaf")
     res = occupancy_map.resolution
+    if np.all(depths == morton.TREE_DEPTH):  # finest leaves only: one centre each, in leaf order
+        return (keys - morton.KEY_OFFSET + 0.5) * res
     out = []
     for lv in np.unique(levels):
         sel = levels == lv

@@ -1,0 +1,91 @@
+"""Start-up: ``import octomerge_jax`` and ``octomerge --help`` load neither JAX nor any optional
+dependency; each command loads only its own module; the command line's compilation cache is
+handed to worker processes (docs/design.md, "Start-up: lazy imports", "Compile cache and
+warm-up")."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+import octomerge_jax as om
+from octomerge_jax import cli
+from octomerge_jax.cli import cache
+
+HEAVY = ("jax", "numpy", "scipy", "trimesh", "matplotlib", "dask", "distributed", "tqdm")
+
+
+def _modules_after(code: str) -> set[str]:
+    probe = code + "; import sys, json; print(json.dumps(sorted(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    return set(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+def _heavy(mods: set[str]) -> set[str]:
+    return {m for m in mods if m.split(".")[0] in HEAVY}
+
+
+def test_import_loads_no_heavy_module():
+    assert not _heavy(_modules_after("import octomerge_jax"))
+
+
+def test_help_and_version_load_no_heavy_module():
+    code = ("import sys; from octomerge_jax.cli import main\n"
+            "for argv in (['--help'], ['--version']):\n"
+            "    try: main(argv)\n"
+            "    except SystemExit: pass")
+    mods = _modules_after(code)
+    assert not _heavy(mods)
+    assert not {m for m in mods if m.startswith("octomerge_jax.cli.") and m != "octomerge_jax.cli._common"
+                and m != "octomerge_jax.cli.cache"}
+
+
+def test_help_lists_every_command_with_its_own_summary():
+    """``COMMANDS``'s summaries are the ones each module registers (the full parser)."""
+    full = next(a for a in cli.build_parser()._actions if a.dest == "command")
+    lazy = next(a for a in cli.build_parser("")._actions if a.dest == "command")
+    assert list(full.choices) == list(lazy.choices) == list(cli.COMMANDS)
+    helps = {c.dest: c.help for c in full._choices_actions}
+    assert helps == {name: summary for name, (_, summary) in cli.COMMANDS.items()}
+
+
+def test_public_names_resolve_lazily_and_list_in_dir():
+    assert set(om.__all__) <= set(dir(om))
+    assert om.merge is om.pipeline.merge and om.load is om.io.load
+    with pytest.raises(AttributeError, match="no_such_name"):
+        om.no_such_name  # noqa: B018
+
+
+def test_cache_dir_setting(tmp_path):
+    assert cache.cache_dir({"OCTOMERGE_CACHE_DIR": "off"}) is None
+    assert cache.cache_dir({"OCTOMERGE_CACHE_DIR": str(tmp_path)}) == str(tmp_path)
+    assert cache.cache_dir({"XDG_CACHE_HOME": str(tmp_path)}) == str(tmp_path / "octomerge_jax" / "xla")
+
+
+def test_worker_env_hands_over_the_cache_in_use():
+    """tests/conftest.py turns the run's cache on (unless OCTOMERGE_TEST_CACHE_DIR=off), so
+    workers get it and keep every program; without a cache they get nothing."""
+    import jax
+
+    env = cache.worker_env()
+    if not jax.config.jax_compilation_cache_dir:
+        assert env == {}
+        return
+    assert env["JAX_COMPILATION_CACHE_DIR"] == jax.config.jax_compilation_cache_dir
+    assert float(env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]) == 0.0
+
+
+def test_warmup_rejects_bad_arguments(tmp_path, capsys):
+    assert cli.main(["warmup", str(tmp_path / "a.bt")]) == 2
+    assert "two maps" in capsys.readouterr().err
+    assert cli.main(["warmup", "--res", "-1"]) == 2
+
+
+@pytest.mark.slow  # compiles a merge's programs (~30 s on 2 idle cores unless the run's cache has them)
+def test_warmup_merges_the_room_pair_into_the_cache(capsys):
+    """The smallest built-in size, ``refine none``: one merge, reported with its program count."""
+    assert cli.main(["warmup", "--res", "0.2", "--refine", "none"]) == 0
+    out = capsys.readouterr().out
+    assert "room at 0.2 m" in out and "refine none" in out and "programs compiled" in out
+    assert f"cache: {cache.worker_env()['JAX_COMPILATION_CACHE_DIR']}" in out
