@@ -46,9 +46,9 @@ A Dask cluster: on the scheduler machine run `dask scheduler`, on each worker ma
 `dask worker tcp://10.0.0.5:8786 --nthreads 1` in an environment with octomerge_jax installed
 (same version) and the map files at the same paths (shared filesystem). Workers with a GPU and
 jax[cuda12] installed run the kernels on the GPU automatically. Re-running the same command
-skips finished pairs and groups (output and report both exist; --no-resume redoes them); every
-pair's or group's status is in DIR/summary.csv (pending until it ends; earlier rows are kept), each merged map
-OUT gets its report OUT.json next to it. Outputs must lie inside DIR; a bad row (too few
+skips finished pairs and groups (output and report both exist; --no-resume redoes them); the
+status of each is in DIR/summary.csv (pending until it ends; earlier rows are kept), each merged
+map OUT gets its report OUT.json next to it. Outputs must lie inside DIR; a bad row (too few
 fields, a bad number, an output outside DIR or equal to an input) is an error for that row
 only. A lock file (DIR/.octomerge-batch.lock) refuses a second run on DIR while one runs.
 If every Dask worker is gone for batch.timeout_s (60 s), the pending pairs fail (kind
