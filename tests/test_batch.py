@@ -419,5 +419,6 @@ def test_batch_group_with_no_map_placed_is_an_error(manifest, local, tmp_path):
         rows = run_manifest(path, tmp_path / "out", progress=False)
     assert [(r["status"], r["kind"], r["maps"]) for r in rows] == [("error", "no_overlap", 2)]
     assert "group far: no map could be placed next to" in rows[0]["message"]
+    assert "edges rejected: (0, 1) registration: no_overlap" in rows[0]["message"], rows[0]["message"]
     assert not (tmp_path / "out" / "far.bt").exists() and not (tmp_path / "out" / "far.bt.json").exists()
 

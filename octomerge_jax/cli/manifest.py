@@ -236,7 +236,9 @@ def run_group(group: ManifestGroup, config_dict: dict, write_reports: bool = Tru
         t_load = time.perf_counter() - t0
         merged, report = merge_group(group, maps, cfg)
         if report.figures["maps_placed"] < 2:
-            raise MergeError(f"group {group.group}: no map could be placed next to {group.maps[0]}", "no_overlap")
+            why = ", ".join(f"({e.i}, {e.j}) {e.why}" for e in report.edges if not e.kept and e.kind != "prior")
+            raise MergeError(f"group {group.group}: no map could be placed next to {group.maps[0]}"
+                             + (f"; edges rejected: {why}" if why else ""), "no_overlap")
         t1 = time.perf_counter()
         Path(group.output).parent.mkdir(parents=True, exist_ok=True)
         save(merged, group.output)
