@@ -1,11 +1,13 @@
 """merge_batch (bucketed vmap, per-pair status) and the manifest runner (resume, summary CSV,
-bad pairs recorded while the rest complete), in process and on a Dask LocalCluster."""
+bad pairs recorded while the rest complete; groups of N maps as merge_many jobs), in process
+and on a Dask LocalCluster."""
 
 from __future__ import annotations
 
 import contextlib
 import csv
 import fcntl
+import json
 import math
 import os
 import socket
@@ -18,7 +20,7 @@ from octomerge_jax import tree
 from octomerge_jax.cli import main
 from octomerge_jax.cli.manifest import read_manifest, run_manifest
 from octomerge_jax.io import load, save
-from octomerge_jax.pipeline import MergeConfig, merge, merge_batch, transform_from_xyz_rpy
+from octomerge_jax.pipeline import MergeConfig, merge, merge_batch, merge_many, transform_from_xyz_rpy
 
 from test_pipeline import T_TRUE, perturbed, robot_map, small_pair
 
@@ -284,3 +286,139 @@ def test_batch_workers_beyond_the_cpus_are_capped_with_a_warning(tmp_path, capsy
     err = capsys.readouterr().err
     assert f"warning: --workers {many} is more than this machine's" in err
     assert _summary(tmp_path / "out")[0]["kind"] == "manifest"
+
+
+# ----------------------------------------------------------------------------- groups of N maps
+
+GROUP_HEADER = "group,map1,map2,output,x,y,z,roll,pitch,yaw,true_x,true_y,true_z,true_roll,true_pitch,true_yaw\n"
+NO_TRUTH = ",,,,,,"
+
+
+def test_manifest_groups_are_read_as_one_job_each(tmp_path):
+    """Rows sharing a group id become one ManifestGroup at the place of the first: its maps in
+    order of first appearance, one GroupPair per row (no guess where the row gives none); rows
+    with an empty group stay pairs; a pair-only manifest reads as before."""
+    rows = _rows(tmp_path, GROUP_HEADER
+                 + "chain,a.bt,b.bt,g.bt,1,0,0,0,0,0.5,1,0,0,0,0,0.5\n"
+                 + ",a.bt,b.bt,p.bt,,,,,,,,,,,,\n"  # a pair: empty guess cells are 0
+                 + "chain,b.bt,sub/c.bt,g.bt,0,2,,,,,0,2,0,0,0,0\n"
+                 + "free,c.bt,a.bt,free.ot,,,,,,,,,,,,\n"
+                 + "free,c.bt,b.bt,free.ot,,,,,,,,,,,,\n")
+    assert [type(r).__name__ for r in rows] == ["ManifestGroup", "ManifestRow", "ManifestGroup"]
+    chain, pair, free = rows
+    assert (chain.index, chain.group, pair.index, free.index) == (0, "chain", 1, 3)
+    assert [p.rsplit("/", 1)[1] for p in chain.maps] == ["a.bt", "b.bt", "c.bt"] and not chain.error
+    assert chain.output == str((tmp_path / "out" / "g.bt").resolve()) and chain.map1 == chain.maps[0]
+    assert [(p.i, p.k, p.guess) for p in chain.pairs] == [(0, 1, (1, 0, 0, 0, 0, 0.5)), (1, 2, (0, 2, 0, 0, 0, 0))]
+    assert chain.guessed and chain.pairs[1].truth == (0, 2, 0, 0, 0, 0)
+    assert pair.guess == (0,) * 6 and pair.group == ""
+    assert [p.rsplit("/", 1)[1] for p in free.maps] == ["c.bt", "a.bt", "b.bt"]
+    assert not free.guessed and [(p.i, p.k, p.truth) for p in free.pairs] == [(0, 1, None), (0, 2, None)]
+
+
+@pytest.mark.parametrize("rows, message", [
+    (["g,a.bt,b.bt,g.bt", "g,b.bt,c.bt,other.bt"], ":4: output other.bt is not the output of the earlier rows of group g"),
+    (["g,a.bt,b.bt,g.bt", ",c.bt,d.bt,g.bt"], ":4: output g.bt appears twice"),
+    (["g,a.bt,b.bt,g.bt", "g,c.bt,c.bt,g.bt"], ":4: map1 and map2 are the same map c.bt"),
+    (["g,a.bt,b.bt,g.bt", "g,a.bt,b.bt,g.bt"], ": group g: a.bt and b.bt are paired twice"),
+    (["g,a.bt,b.bt,g.bt,1,0,0,0,0,0", "g,b.bt,c.bt,g.bt"], ": group g: the rows' guesses (x..yaw) do not connect c.bt"),
+    (["g,a.bt,b.bt,g.bt,,,,,,,0,0,0,0,0,0", "g,a.bt,c.bt,g.bt"], "the rows' truths (true_x..true_yaw) do not connect c.bt"),
+    (["g,a.bt,b.bt,g.bt,1,0,0,0,0,0", "g,b.bt,c.bt,g.bt,x,0,0,0,0,0"], ":4: x = 'x' is not a number"),
+    (["g,a.bt,b.bt,g.bt", "g,b.bt,a.bt,g.bt", "g,a.bt,out/g.bt,g.bt"], ":5: output g.bt is also an input"),
+], ids=["two-outputs", "output-of-a-pair", "self-pair", "paired-twice", "guesses-apart", "truths-apart", "bad-number",
+        "output-is-a-member"])
+def test_bad_group_row_makes_its_group_an_error_only(tmp_path, rows, message):
+    text = "".join(r + "," * (15 - r.count(",")) + "\n" for r in rows)
+    got = _rows(tmp_path, GROUP_HEADER + "ok,a.bt,b.bt,ok.bt" + "," * 12 + "\n" + text)
+    assert not got[0].error and len(got[0].pairs) == 1
+    bad = [r for r in got[1:] if r.error]
+    assert len(bad) == 1 and bad[0].error.startswith(str(tmp_path / "m.csv")) and message in bad[0].error, bad[0].error
+
+
+def _xyz_rpy(T):
+    """``x,y,z,roll,pitch,yaw`` of a transform about z (as T_TRUE)."""
+    return ",".join(repr(float(v)) for v in (T[0, 3], T[1, 3], T[2, 3], 0, 0, math.atan2(T[1, 0], T[0, 0])))
+
+
+def test_batch_groups_run_resume_and_fail_alone(manifest, local, tmp_path, capsys):
+    """Through the command (--refine none: the guesses are the edges): a chain of three maps
+    (robot 2's map again as a third robot 0.36 m / 0.2 rad further on) with guesses and truths
+    in the manifest merges exactly as ``merge_many(pairs=...)`` with the same guesses does, with
+    its ManyReport and one summary row; a group with a missing map and one with an unreadable
+    map are error rows while the rest run; a re-run skips the finished group, and a group
+    without its report is redone; the same groups as Dask tasks give the same bytes."""
+    d, _ = manifest
+    a, b, c = d / "maps" / "a.ot", d / "maps" / "b.ot", tmp_path / "c.ot"
+    c.write_bytes(b.read_bytes())
+    (tmp_path / "bad.ot").write_bytes(b"not an octree\n")
+    T_2_3 = transform_from_xyz_rpy(0.3, -0.2, 0.0, 0.0, 0.0, 0.2)
+    g12, g23 = _xyz_rpy(T_TRUE), _xyz_rpy(T_2_3)
+    path = tmp_path / "groups.csv"
+    path.write_text(GROUP_HEADER
+                    + f"team,{a},{b},team.ot,{g12},{g12}\n"
+                    + f"lost,{a},{b},lost.bt,{g12}{NO_TRUTH}\nlost,{b},{tmp_path / 'missing.ot'},lost.bt,{g12}{NO_TRUTH}\n"
+                    + f",{a},{b},pair.ot,{g12}{NO_TRUTH}\n"
+                    + f"team,{b},c.ot,team.ot,{g23},{g23}\n"
+                    + f"junk,{a},{tmp_path / 'bad.ot'},junk.bt,{g12}{NO_TRUTH}\n")
+    out = tmp_path / "out"
+
+    def batch(*args):
+        with jax.numpy_dtype_promotion("standard"):  # as `local`: its compiled kernels are reused
+            return main(["batch", str(path), "--out-dir", str(out), "--no-progress", "--refine", "none", *args])
+
+    assert batch() == 6
+    printed = capsys.readouterr().out
+    assert "1 pairs and 3 groups: 2 error, 2 ok" in printed
+    assert "failed: group lost (3 maps): " in printed and "missing.ot: no such file" in printed
+    rows = {r["output"].rsplit("/", 1)[1]: r for r in _summary(out)}
+    assert [r["status"] for r in rows.values()] == ["ok", "error", "ok", "error"]  # manifest order
+    team = rows["team.ot"]
+    assert [team[k] for k in ("group", "maps", "maps_placed", "edges_kept", "edges_rejected", "refine")] == [
+        "team", "3", "3", "2", "0", "none"]
+    assert float(team["epsilon_r"]) < 1e-6 and float(team["epsilon_t"]) < 1e-6 and team["map2"] == ""
+    assert rows["junk.bt"]["kind"] == "MapFormatError" and "bad.ot: byte 0: not an OctoMap" in rows["junk.bt"]["message"]
+    assert rows["lost.bt"]["kind"] == "FileNotFoundError" and not (out / "lost.bt").exists()
+    with jax.numpy_dtype_promotion("standard"):
+        m1, m2 = load(a), load(b)
+        ref, _ = merge_many([m1, m2, m2], pairs={(0, 1): T_TRUE, (1, 2): T_2_3}, refine="none")
+    save(ref, tmp_path / "ref.ot")
+    assert (out / "team.ot").read_bytes() == (tmp_path / "ref.ot").read_bytes()
+    assert int(team["leaves_merged"]) == ref.num_leaves > m1.num_leaves
+    rep = json.loads((out / "team.ot.json").read_text())
+    assert rep["inputs"] == [str(a), str(b), str(c)] and rep["figures"]["maps_placed"] == 3
+    np.testing.assert_allclose(rep["transforms"][2], T_TRUE @ T_2_3, atol=1e-9)  # chained along the rows
+    assert [e["kind"] for e in rep["edges"]] == ["guess"] * 2 and {"load", "save", "fuse"} <= rep["timings"].keys()
+    # resume: the finished group is skipped with its figures; without its report it is redone
+    mtime = (out / "team.ot").stat().st_mtime_ns
+    assert batch() == 6
+    again = {r["output"].rsplit("/", 1)[1]: r for r in _summary(out)}
+    assert again["team.ot"]["status"] == "skipped" and again["team.ot"]["maps_placed"] == "3"
+    assert (out / "team.ot").stat().st_mtime_ns == mtime
+    (out / "team.ot.json").unlink()
+    assert batch() == 6
+    assert {r["output"].rsplit("/", 1)[1]: r["status"] for r in _summary(out)}["team.ot"] == "ok"
+    # a group is one Dask task
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address="127.0.0.1:0") as cluster, distributed.Client(cluster) as client:
+        rows = run_manifest(path, tmp_path / "dask", config=MergeConfig().replace(registration={"refine": "none"}),
+                            scheduler=client, progress=False)
+    assert [r["status"] for r in rows] == ["ok", "error", "ok", "error"]
+    assert (tmp_path / "dask" / "team.ot").read_bytes() == (out / "team.ot").read_bytes()
+
+
+@pytest.mark.slow  # a registration that finds no overlap and a one-map fuse_many: ~7 s on 2 busy cores
+def test_batch_group_with_no_map_placed_is_an_error(manifest, local, tmp_path):
+    """A guess 50 m off: the registration finds no overlap, the prior alone places nothing, and
+    the group is an error row (``no_overlap``) with no output."""
+    d, _ = manifest
+    a, b = d / "maps" / "a.ot", d / "maps" / "b.ot"
+    path = tmp_path / "groups.csv"
+    path.write_text(GROUP_HEADER + f"far,{a},{b},far.bt,50,0,0,0,0,0{NO_TRUTH}\n")
+    with jax.numpy_dtype_promotion("standard"):  # as `local`: its compiled kernels are reused
+        rows = run_manifest(path, tmp_path / "out", progress=False)
+    assert [(r["status"], r["kind"], r["maps"]) for r in rows] == [("error", "no_overlap", 2)]
+    assert "group far: no map could be placed next to" in rows[0]["message"]
+    assert "edges rejected: (0, 1) registration: no_overlap" in rows[0]["message"], rows[0]["message"]
+    assert not (tmp_path / "out" / "far.bt").exists() and not (tmp_path / "out" / "far.bt.json").exists()
+

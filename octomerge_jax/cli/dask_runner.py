@@ -93,7 +93,7 @@ def map_on_dask(func: Callable, items: Sequence, *args, scheduler=None, workers:
                 for fut in pending:
                     fut.cancel()
                     yield by_key[fut.key], None, NoWorkersError(
-                        f"no Dask worker for {timeout_s:g} s; pair not run")
+                        f"no Dask worker for {timeout_s:g} s; not run")
                 return
     finally:
         if own_client:

@@ -89,6 +89,7 @@ class ManyReport:
       ``icp`` the figures of the kept registration of map k with the most confidence); the report
       also reads as this sequence (``len``, indexing, iteration), as ``merge_many``'s
       earlier list of reports did.
+    - ``inputs``: the maps' file paths when the caller knows them (``octomerge batch``), else ``()``.
     """
 
     transforms: tuple
@@ -99,6 +100,7 @@ class ManyReport:
     resolution: float
     warnings: tuple[str, ...] = ()
     merge_reports: tuple[MergeReport, ...] = dataclasses.field(default=(), repr=False, compare=False)
+    inputs: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.merge_reports)
@@ -119,7 +121,8 @@ class ManyReport:
         return jsonable({"resolution": self.resolution, "transforms": list(self.transforms),
                          "maps": [dataclasses.asdict(m) for m in self.maps],
                          "edges": [dataclasses.asdict(e) for e in self.edges],
-                         "figures": self.figures, "timings": self.timings, "warnings": list(self.warnings)})
+                         "figures": self.figures, "timings": self.timings, "warnings": list(self.warnings),
+                         **({"inputs": list(self.inputs)} if self.inputs else {})})
 
     def to_json(self, path=None, indent: int = 2) -> str:
         """The report as JSON text; also written (atomically) to ``path`` if given."""
