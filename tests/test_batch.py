@@ -33,7 +33,8 @@ def test_merge_batch_matches_merge_and_isolates_bad_pairs():
     g2 = perturbed(-0.05, 0.08, -0.08)
     pairs = [(m1, m2, perturbed(), T), (m1, coarse, T), (m1, m2, g2, T), (m1, m2, bad_T),
              (m1, m2, transform_from_xyz_rpy(90.0, 0, 0, 0, 0, 0))]
-    res = merge_batch(pairs)
+    icp = MergeConfig().replace(registration={"refine": "icp"})  # the ICP path, batched and single
+    res = merge_batch(pairs, config=icp)
     assert [r.status for r in res] == ["ok", "error", "ok", "error", "error"]
     assert [r.kind for r in res[1:2] + res[3:]] == ["resolution", "transform", "no_overlap"]
     assert "resolutions differ" in res[1].message and "NaN or infinite" in res[3].message
@@ -42,7 +43,7 @@ def test_merge_batch_matches_merge_and_isolates_bad_pairs():
         assert r.epsilon_r < 0.05 and r.epsilon_t < 0.06, (r.epsilon_r, r.epsilon_t)
         assert r.epsilon_t < r.epsilon_t_init / 2.5
     # ... and give what a single merge gives
-    single, rep = merge(m1, m2, perturbed(), T_1_2_true=T)
+    single, rep = merge(m1, m2, perturbed(), T_1_2_true=T, config=icp)
     b = res[0].report
     np.testing.assert_allclose(b.T_1_2, rep.T_1_2, atol=2e-4)
     # same algorithm and stopping rule; last-bit float differences under vmap can move the

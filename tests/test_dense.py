@@ -232,6 +232,7 @@ def test_minimize_converges_and_vmaps():
         assert np.all(np.diff(h) <= 1e-6)
 
 
+@pytest.mark.slow  # the optional backend; the default one is tested above
 def test_jaxopt_backend_reaches_the_default_backends_transform(pair):
     """``solver="jaxopt"`` (jaxopt's LBFGS on the same loss and levels) ends within a voxel and
     0.01 rad of the default backend's transform, with the same result type and a usable status;

@@ -61,6 +61,8 @@ def test_export_cli(small_map, tmp_path):
     args = parser.parse_args(["export", str(tmp_path / "m.bt"), str(tmp_path / "m.glb")])
     assert args.func(args) == 0
     assert len(trimesh.load(tmp_path / "m.glb", force="mesh").faces) == 24
+    from octomerge_jax.cli import CliError
+
     args = parser.parse_args(["export", str(tmp_path / "m.bt"), str(tmp_path / "m.bt")])
-    with pytest.raises(ValueError, match="refusing"):
+    with pytest.raises(CliError, match="OUT must end in"):  # never over the input map
         args.func(args)

@@ -189,7 +189,7 @@ def test_cli_info_on_a_directory(tmp_path, capsys):
     (tmp_path / "d.bt").mkdir()
     assert main(["info", str(tmp_path / "d.bt")]) == 1
     err = capsys.readouterr().err.strip()
-    assert err.endswith("is a directory, not a file") and "\n" not in err
+    assert err.endswith("is a directory, not a map file") and "\n" not in err
 
 
 # ----------------------------------------------------------------------------- scans

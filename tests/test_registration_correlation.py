@@ -132,6 +132,8 @@ def test_grid_lengths_are_few_and_cover():
     assert lens == {2 ** a for a in range(10)} | {3 * 2 ** a for a in range(9)}  # 19 shapes up to 768
 
 
+# refine="multi" is no longer the default guess-free mode (refine="global", tests/test_global.py)
+@pytest.mark.slow
 def test_merge_multi_with_correlation_hypotheses_recovers_the_truth():
     """refine="multi" from the bad guess (no yaw-grid start within 1 m of the truth, see
     above; the yaw grid alone ends 3.2 m off: ICP slides the right yaw along the hall); from
@@ -155,6 +157,7 @@ def test_merge_multi_with_correlation_hypotheses_recovers_the_truth():
     assert b.report.icp["rmse"] == pytest.approx(rep.icp["rmse"], rel=1e-3)
 
 
+@pytest.mark.slow
 def test_merge_multi_default_takes_both_sources():
     """refine="multi" with its default hypotheses ("both"): the yaw grid's and the correlation
     poses' candidates; from the bad guess (the yaw grid alone ends 3.2 m off on this hall) the

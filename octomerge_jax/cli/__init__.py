@@ -24,7 +24,7 @@ from .cache import enable_compilation_cache
 COMMANDS = {
     "merge": ("merge", "merge two maps (ICP-refined transform, trilinear resampling, log-odds fusion)"),
     "merge-many": ("merge_many", "merge N maps into one consistent map (pairwise registration + pose graph)"),
-    "batch": ("batch", "merge many pairs from a CSV manifest (resumable, Dask cluster optional)"),
+    "batch": ("batch", "merge many pairs or groups of maps from a CSV manifest (resumable, Dask optional)"),
     "demo": ("demo", "simulate two robots, merge their maps from a wrong guess, write figures"),
     "info": ("info", "print resolution, leaves per depth, occupancy, bounds of a map"),
     "convert": ("convert", "convert a map between .bt and .ot"),
