@@ -56,10 +56,12 @@ def execute(path: Path, timeout_s: int = 1200) -> int:
             if "image/png" in out.get("data", {}):
                 out["data"]["image/png"] = compress_png(out["data"]["image/png"])
     nb.metadata["octomerge_jax"] = {"code_sha256": code_sha256(nb)}
+    mode = path.stat().st_mode & 0o777
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             nbformat.write(nb, f)
+        os.chmod(tmp, mode)  # keep the notebook's permissions (mkstemp makes 0600)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
