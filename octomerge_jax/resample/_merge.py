@@ -44,15 +44,7 @@ def _prune_whole_bricks(codes, values):
     for d in range(BRICK_DEPTH, 0, -1):
         if c.size < 8:
             break
-        shift = np.uint64(3 * (_D - d + 1))
-        parent = c >> shift
-        start = np.ones(c.size, bool)
-        start[1:] = parent[1:] != parent[:-1]
-        gid = np.cumsum(start) - 1
-        first = np.flatnonzero(start)
-        size = np.diff(np.append(first, c.size))
-        uniform = np.bincount(gid, weights=v != v[first][gid], minlength=first.size) == 0
-        merge = (size == 8) & uniform
+        shift, parent, start, gid, first, merge = _full_uniform_siblings(c, v, d)
         if not merge.any():
             break
         merged = merge[gid]
@@ -135,15 +127,7 @@ def _prune_cells(codes, depths, values):
         if d not in levels or levels[d][0].size < 8:
             continue
         c, v = levels[d]
-        shift = np.uint64(3 * (_D - d + 1))
-        parent = c >> shift
-        start = np.ones(c.size, bool)
-        start[1:] = parent[1:] != parent[:-1]
-        gid = np.cumsum(start) - 1
-        first = np.flatnonzero(start)
-        size = np.diff(np.append(first, c.size))
-        uniform = np.bincount(gid, weights=v != v[first][gid], minlength=first.size) == 0
-        merge = (size == 8) & uniform
+        shift, parent, start, gid, first, merge = _full_uniform_siblings(c, v, d)
         if not merge.any():
             continue
         gone = merge[gid]
@@ -226,3 +210,18 @@ def merge_with_cells(out: OccupancyMap | None, total: int, codes, depths, values
                                           capacity=bucket_capacity(n))
     return OccupancyMap(code, depth, log_odds, jnp.int32(n), like.params, like.resolution,
                         like.tree_depth)
+
+
+def _full_uniform_siblings(c, v, d: int):
+    """Groups of siblings among sorted leaves ``c (n,) uint64`` of depth ``d`` with values
+    ``v (n,)``: ``(shift, parent (n,), start (n,) bool, gid (n,), first (g,), merge (g,) bool)``,
+    ``merge`` marking the groups of all eight children with one value (exact equality)."""
+    shift = np.uint64(3 * (_D - d + 1))
+    parent = c >> shift
+    start = np.ones(c.size, bool)
+    start[1:] = parent[1:] != parent[:-1]
+    gid = np.cumsum(start) - 1
+    first = np.flatnonzero(start)
+    size = np.diff(np.append(first, c.size))
+    uniform = np.bincount(gid, weights=v != v[first][gid], minlength=first.size) == 0
+    return shift, parent, start, gid, first, (size == 8) & uniform
