@@ -133,10 +133,9 @@ def test_save_fsyncs_the_file_before_the_rename_and_the_folder_after(tmp_path, m
     assert events[2][1] == str(tmp_path)  # the folder, so the rename survives a crash
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_signal_during_a_save_leaves_no_temp_file(tmp_path, sig):
-    target = tmp_path / "m.bt"
-    target.write_bytes(b"old")
+def _stalled_writer(target):
+    """A child process in the middle of a save to ``target`` (its temp file written, the
+    rename not yet done), returned once it says so."""
     p = _child("""
         import time
         with fu.atomic_output(sys.argv[1]) as tmp:
@@ -145,6 +144,14 @@ def test_signal_during_a_save_leaves_no_temp_file(tmp_path, sig):
             time.sleep(30)
     """, str(target))
     assert p.stdout.readline().strip() == "writing"
+    return p
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_during_a_save_leaves_no_temp_file(tmp_path, sig):
+    target = tmp_path / "m.bt"
+    target.write_bytes(b"old")
+    p = _stalled_writer(target)
     assert len(_hidden(tmp_path)) == 1
     p.send_signal(sig)
     p.communicate(timeout=30)
@@ -174,14 +181,7 @@ def test_no_signal_handler_outside_a_save_or_off_the_main_thread(tmp_path):
 
 def test_leftover_of_a_killed_writer_is_removed_by_the_next_save(tmp_path):
     target = tmp_path / "m.bt"
-    p = _child("""
-        import time
-        with fu.atomic_output(sys.argv[1]) as tmp:
-            open(tmp, "wb").write(b"partial")
-            print("writing", flush=True)
-            time.sleep(30)
-    """, str(target))
-    assert p.stdout.readline().strip() == "writing"
+    p = _stalled_writer(target)
     p.kill()  # kill -9: no cleanup can run
     p.communicate(timeout=30)
     leftover = _hidden(tmp_path)

@@ -17,28 +17,14 @@ from octomerge_jax import io, morton, resample, tree
 from octomerge_jax import map as mp
 from octomerge_jax.budget import MemoryBudgetError, memory_budget
 
+from test_resample import make_T, rot
+
 RES = 0.1
 OFF = morton.KEY_OFFSET
 L_MIN = float(mp.logit(0.1192))
 L_MAX = float(mp.logit(0.971))
 CAP = 8192
 CORNERS8 = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)])
-
-
-def rot(axis: str, angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    if axis == "x":
-        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-    if axis == "y":
-        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-def make_T(R=np.eye(3), t=(0.0, 0.0, 0.0)) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
-    return T
 
 
 def staircase(rng, top: int = 1, fine: bool = True):
