@@ -223,13 +223,15 @@ def fuse_pair_planned(m1: OccupancyMap, m2: OccupancyMap, w1, w2, mode, do_prune
 def fuse_pair(m1, m2, w1, w2, mode, capacity: int | None, prune: bool, gap_capacity: int | None,
               what: str):
     """The pair kernel for ``fuse`` / ``fuse_many`` of two checked maps: ``(map,
-    FuseReport)``. The refinement has between ``max(n1, n2)`` and ``n1 + n2`` cells (plus gap
-    cells); on the host without a ``capacity``, when those bounds lie in different buckets,
-    it is planned first and laid out in its own bucket (``fuse_pair_planned``), else run in
-    one program (``pair_kernel``) at the bucket of ``n1 + n2``."""
+    FuseReport)``. On the host without a ``capacity`` it is planned first and laid out in
+    its refinement's own bucket with room for all its gap cells (``fuse_pair_planned``: the
+    refinement has between ``max(n1, n2)`` and ``n1 + n2`` cells, and its gap cells range
+    from none to a seventh of it on maps with large coarse leaves, so no size guessed in
+    advance fits both); with a ``capacity``, or under ``jit``/``vmap``, it runs in one
+    program (``pair_kernel``)."""
     traced = is_traced(m1.count, m2.count)
     n1, n2 = (0, 0) if traced else (int(m1.count), int(m2.count))
-    if capacity is None and not traced and bucket_capacity(max(n1, n2)) < bucket_capacity(n1 + n2):
+    if capacity is None and not traced:
         return fuse_pair_planned(m1, m2, w1, w2, mode, bool(prune), gap_capacity, max(n1, n2))
 
     def kernel(cap, gcap, gleaves):

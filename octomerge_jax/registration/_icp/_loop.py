@@ -13,11 +13,12 @@ improved by ``STALL_REL`` for ``STALL_PATIENCE`` iterations (centroid matches ji
 stage ends ICP when the change falls below ``final_epsilon`` or when its energy has not reached
 a new minimum for ``STALL_PATIENCE_FINAL`` iterations (float32 cycles of match sets).
 
-Two ``while_loop``s run the same iteration: the coarse stages on the coarse query cloud
-(``_coarse``), then the last stage on the source points; one loop serves all stages when the
-coarse cloud has as many rows as the source. A stage change restarts the acceleration history
-and the stall count, so the split changes no iterate. ``run_until`` stops after a given stage
-and ``register`` resumes from its ``Progress`` (``icp_multi``'s basin merging).
+One ``while_loop`` runs every stage of a whole run: the coarse stages on the coarse query
+cloud (``_coarse``, padded to the source's rows) and the last stage on the source points, so a
+registration compiles one loop body. A stage change restarts the acceleration history and the
+stall count. ``run_until`` runs the coarse stages alone (their own loop) until a given stage,
+and ``register`` resumes from its ``Progress`` with the last stage's loop (``icp_multi``'s basin
+merging).
 """
 
 from __future__ import annotations
@@ -240,15 +241,20 @@ def stage_queries(loop: Loop, stage, last_stage: int) -> Queries:
 
 
 def _loops(clouds: QueryClouds, *, run_coarse: bool, run_last: bool) -> list[Loop]:
-    """The loops of a run: one over every stage when there is a single stage or the coarse
-    clouds are as long as the source, else the coarse stages' (``run_coarse``) then the last
-    stage's (``run_last``)."""
+    """The loops of a run: one over every stage when it runs them all (the coarse clouds
+    padded to the source's rows: one body to compile), else the coarse stages'
+    (``run_coarse``) or the last stage's (``run_last``)."""
     full = Queries(*(x[None] for x in clouds.full))
     if clouds.coarse is None:
         return [Loop(full, "all")]
-    if clouds.coarse.points.shape[1] == clouds.full.points.shape[0]:
-        # nothing to save: one loop (one body to compile)
-        return [Loop(Queries(*(jnp.concatenate([c, f]) for c, f in zip(clouds.coarse, full))), "all")]
+    n, m = clouds.full.points.shape[0], clouds.coarse.points.shape[1]
+    if run_coarse and run_last:
+        # one loop (one body to compile): the coarse clouds padded to the source's rows; the
+        # search skips the padding's blocks, so it costs a few elementwise passes
+        pad = [(0, 0), (0, n - m)]
+        coarse = Queries(jnp.pad(clouds.coarse.points, pad + [(0, 0)]), jnp.pad(clouds.coarse.weights, pad),
+                         clouds.coarse.count)
+        return [Loop(Queries(*(jnp.concatenate([c, f]) for c, f in zip(coarse, full))), "all")]
     loops = [Loop(clouds.coarse, "coarse")] if run_coarse else []
     if run_last:
         loops.append(Loop(full, "last"))
