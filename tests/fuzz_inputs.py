@@ -42,7 +42,7 @@ from octomerge_jax.cli.manifest import read_manifest
 from octomerge_jax.io import MapFormatError, load, to_bytes
 from octomerge_jax.io.scans import read_scans, write_scan_graph, write_scan_log
 from octomerge_jax.map import from_leaves
-from octomerge_jax.pipeline.config import MergeConfig, config_to_dict, dumps_toml, load_config
+from octomerge_jax.pipeline import MergeConfig, config_to_dict, dumps_toml, load_config
 
 TARGETS = ("bt", "ot", "graph", "pcd", "dat", "manifest", "toml", "json")
 #: Memory budget for one case: a mutated header or body may claim a lot; the readers must

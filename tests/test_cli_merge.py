@@ -192,7 +192,7 @@ def test_dump_config_describes_every_key(capsys):
     import dataclasses
 
     from octomerge_jax.pipeline import MergeConfig
-    from octomerge_jax.pipeline.config import field_docs
+    from octomerge_jax.pipeline.config_file import field_docs
 
     cfg = MergeConfig()
     for f in dataclasses.fields(cfg):

@@ -5,8 +5,8 @@ from .batch import BatchResult, merge_batch
 from .clouds import VOXEL_OVERLAP_VOXELS, overlap_margin, point_stats
 from .config import (COARSE_MATCHING_CHOICES, DEMO_SCENES, HYPOTHESES_CHOICES, ON_NOT_CONVERGED_CHOICES,
                      OVERLAP_CHOICES, REFINE_CHOICES, BatchConfig, DemoConfig, FuseConfig, MergeConfig,
-                     RegistrationConfig, TransformConfig, config_from_dict, config_to_dict, dumps_toml, load_config,
-                     save_config, validate)
+                     RegistrationConfig, TransformConfig, config_from_dict, config_to_dict, validate)
+from .config_file import dumps_toml, load_config, save_config
 from .globalreg import judge_local, register_global
 from .many import merge_many
 from .many_report import EdgeReport, ManyReport, MapReport
