@@ -9,7 +9,9 @@ maximum-confidence spanning tree (map_merge_3d's way) in the same run.
 Prints one row per N: seconds for the pre-screen, the pairwise registrations, the graph solve,
 transform + fuse; pairs registered; maps placed; the worst rotation [rad] and translation [m]
 error of a placed map with the graph and with the spanning tree. Without ``--guess-noise`` every
-pair is registered guess-free (``refine="multi"``); with it the robots have guesses ``T_0_k``
+candidate pair is registered guess-free (``register_global``), each pair's pose chosen among its
+candidates by the other pairs' agreement and refined locally (``icp+dense``); the tree chains
+each "ok" pair's own best pose. With ``--guess-noise`` the robots have guesses ``T_0_k``
 off by up to that many metres / radians (uniform in x, y, yaw), so only pairs that overlap under
 the guesses are registered, with ICP from them. ``--budget-s`` stops before a
 size whose registrations would not fit (estimated from the previous size's seconds per pair).
@@ -48,13 +50,17 @@ def run(scene: str, n: int, resolution: float, seed: int, overlap_m: float, gues
     t0 = time.perf_counter()
     _, rep = merge_many(list(team.maps), guesses, T_trues=list(team.T_0_k[1:]))
     wall = time.perf_counter() - t0
-    reg = [e for e in rep.edges if e.kind == "registration" and e.T_i_j is not None]
+    # map_merge_3d's way: each pair's own best pose, pairs its registration called "ok"
+    reg = [e for e in rep.edges if e.kind == "registration" and e.T_i_j is not None
+           and (e.figures or {}).get("verdict", "ok") == "ok"]
+    best = [np.asarray(e.figures["candidates"][0]["T_1_2"]) if e.figures.get("candidates") else e.T_i_j for e in reg]
     T_tree, placed, _ = spanning_tree_poses(n, [e.i for e in reg], [e.j for e in reg],
-                                            np.stack([e.T_i_j for e in reg]) if reg else np.zeros((0, 4, 4)),
+                                            np.stack(best) if reg else np.zeros((0, 4, 4)),
                                             [e.confidence for e in reg], np.ones(len(reg), bool))
     tree = [T_tree[k] if placed[k] else None for k in range(n)]
     tm = rep.timings
-    return dict(n=n, screen=tm["screen"], register=tm["register"], solve=tm["solve"],
+    return dict(n=n, screen=tm["screen"], register=tm["register"] + tm.get("consensus", 0.0) + tm.get("polish", 0.0),
+                solve=tm["solve"],
                 fuse=tm["transform"] + tm["fuse"], wall=wall, pairs=rep.figures["pairs_registered"],
                 kept=rep.figures["edges_kept"], placed=rep.figures["maps_placed"], placed_tree=int(placed.sum()),
                 graph=_worst(rep.transforms, team.T_0_k), tree=_worst(tree, team.T_0_k))

@@ -5,6 +5,8 @@ graph over all of them).
 
     maps ──screen_pairs──> candidate pairs        (all pairs, or a coarse-descriptor pre-screen)
          ──measure_pair──> T_i_j, Omega, confidence per pair   (guess-free, or from the guesses)
+         ──consensus.choose_candidates──> per pair the candidate pose the other pairs agree with
+         ──refine locally from it (the configured mode, "icp+dense")
          ──posegraph.solve_robust──> T_0_k, kept / rejected edges, covariances
          ──transform_map (each placed map)──fuse_many──> merged   (one pass, Alg. 8)
 
@@ -26,18 +28,23 @@ import numpy as np
 from .. import registration as reg
 from ..fusion import fuse_many_with_report
 from ..map import OccupancyMap
-from ..registration import posegraph
+from ..registration import consensus, posegraph
 from ..resample import transform_map
 from .config import MergeConfig
 from .many_report import EdgeReport, ManyReport, MapReport
 from .merging import check_resolutions, check_transform, config_with_overrides
-from .pairs import measure_pair, screen_pairs
+from .pairs import candidate_measurement, measure_pair, screen_pairs
 from .report import MergeError, MergeReport
 from .timings import Timings
 
 __all__ = ["merge_many"]
 
 _LOW = 1e-9
+#: two candidate poses of a map agree within this rotation [rad] and translation (voxels, at
+#: least the metres below): wrong candidates of symmetric scenes lie a half turn or a bay away
+CONSENSUS_ROT_RAD, CONSENSUS_TRANS_VOXELS, CONSENSUS_TRANS_MIN_M = 0.1, 5.0, 1.0
+#: the refinements that polish a guess-free edge from its chosen pose (the others leave it)
+LOCAL_REFINES = ("icp", "icp+dense", "dense")
 
 
 def _guesses(n: int, T_inits, pairs) -> tuple[dict, np.ndarray | None]:
@@ -87,6 +94,50 @@ def _sigmas(cov) -> tuple[float | None, float | None]:
             float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))))
 
 
+def _choose_by_consensus(maps, edges: list[dict], min_confidence: float) -> list[dict]:
+    """Guess-free edges: each ``"ok"`` or ``"ambiguous"`` registration's candidate poses go to
+    ``consensus.choose_candidates``; an edge keeps the candidate the other pairs agree with
+    (``figures["candidate"]``: its rank; ambiguous registrations become usable that way), or
+    is set aside as ``"inconsistent"`` when its maps are placed and no candidate agrees. Edges
+    of unplaced maps keep their verdict. In place; returns the edges that kept a candidate."""
+    pool = [e for e in edges if e.get("meas") is not None and e["meas"].verdict in ("ok", "ambiguous")
+            and e["conf"] >= min_confidence and e["reg"].candidates]
+    if not pool:
+        return []
+    res = float(maps[0].resolution)
+    cons = consensus.choose_candidates(
+        len(maps), [e["i"] for e in pool], [e["j"] for e in pool],
+        [[np.asarray(c["T_1_2"], np.float64) for c in e["reg"].candidates] for e in pool],
+        [[float(c["score"]) for c in e["reg"].candidates] for e in pool],
+        [e["meas"].verdict == "ok" for e in pool], rot_tol=CONSENSUS_ROT_RAD,
+        trans_tol=max(CONSENSUS_TRANS_VOXELS * res, CONSENSUS_TRANS_MIN_M))
+    chosen = []
+    for e, c in zip(pool, cons.choice):
+        if c >= 0:
+            meas = candidate_measurement(maps[e["i"]], maps[e["j"]], e["meas"], int(c))
+            e.update(T=meas.T_i_j, info=meas.information, why="", meas=meas,
+                     figures={**(e["figures"] or {}), "candidate": int(c)})
+            chosen.append(e)
+        elif cons.placed[e["i"]] and cons.placed[e["j"]]:
+            e["why"] = "inconsistent: none of its candidate poses agrees with the other pairs"
+    return chosen
+
+
+def _polish(maps, chosen: list[dict], cfg: MergeConfig, timings: Timings) -> None:
+    """Each chosen edge registered again locally from its pose with the configured refinement
+    (``"icp+dense"`` by default: ICP alone keeps a voxel-lattice bias, ``docs/design.md``); the
+    local result replaces the candidate when its own verdict is ``"ok"``. In place."""
+    for e in chosen:
+        try:
+            local = measure_pair(maps[e["i"]], maps[e["j"]], e["T"], cfg, False, timings)
+        except MergeError:
+            continue
+        if local.verdict == "ok":
+            e.update(T=local.T_i_j, info=local.information, reg=local.registration,
+                     figures={**e["figures"], "polish": {"refine": cfg.registration.refine,
+                                                         **(local.registration.info or {})}})
+
+
 def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine: str | None = None,
                rule: str | None = None, T_trues=None, config: MergeConfig | None = None,
                max_pairs_per_map: int | None = 4, min_confidence: float = 0.1, prior_sigma_m: float = 1.0,
@@ -107,7 +158,10 @@ def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine
       max_pairs_per_map: without guesses and from 7 maps on, each map's this many most similar
         maps (coarse descriptor) are registered (``None``: every pair).
       min_confidence: measurements below it are not used (``why="low_confidence"``), nor those
-        whose registration ended other than ``"ok"`` (``why="registration ambiguous"``, ...).
+        whose registration ended other than ``"ok"`` (``why="registration ambiguous"``, ...),
+        except that without guesses a pair keeps the candidate pose the other pairs agree with
+        (``consensus.choose_candidates``; an ``"ambiguous"`` pair too, a best pose they
+        contradict is replaced or set aside as ``"inconsistent"``).
       prior_sigma_m, prior_sigma_rad: standard deviations of a guess as a prior [m], [rad].
       kernel, max_chi2: the pose graph's robust kernel and rejection threshold
         (``registration.posegraph.solve_robust``).
@@ -148,11 +202,20 @@ def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine
                 edges.append(dict(i=i, j=j, kind="registration", T=None, info=None, conf=None, figures=None,
                                   why=f"registration: {err.kind}: {err}", seconds=time.perf_counter() - t0, reg=None))
                 continue
+            figures = dict(meas.registration.info or {})
+            if T0_guess is None:  # guess-free: its candidate poses, best first (what the consensus chose from)
+                figures["candidates"] = list(meas.registration.candidates)
             edges.append(dict(i=i, j=j, kind="registration", T=meas.T_i_j, info=meas.information,
-                              conf=meas.confidence, figures=meas.registration.info,
+                              conf=meas.confidence, figures=figures,
                               why=("" if meas.verdict == "ok" else f"registration {meas.verdict}")
                               or ("" if meas.confidence >= min_confidence else "low_confidence"),
-                              seconds=time.perf_counter() - t0, reg=meas.registration))
+                              seconds=time.perf_counter() - t0, reg=meas.registration, meas=meas))
+    if T0_guess is None:
+        with timings.stage("consensus"):
+            chosen = _choose_by_consensus(maps, edges, min_confidence)
+        if cfg.registration.refine in LOCAL_REFINES:
+            with timings.stage("polish"):
+                _polish(maps, chosen, cfg, reg_timings)
     guess_kind = "guess" if cfg.registration.refine == "none" else "prior"
     prior_info = np.diag([prior_sigma_m ** -2.0] * 3 + [prior_sigma_rad ** -2.0] * 3)
     for (i, k), T in guesses.items():

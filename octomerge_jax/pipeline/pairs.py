@@ -23,7 +23,8 @@ from .refine import register
 from .report import MergeError, Registration
 from .timings import Timings
 
-__all__ = ["PairMeasurement", "alignment_information", "describe_map", "measure_pair", "screen_pairs"]
+__all__ = ["PairMeasurement", "alignment_information", "candidate_measurement", "describe_map", "measure_pair",
+           "screen_pairs"]
 
 DESCRIPTOR_CELL_M = 1.0  # column size of the coarse descriptor [m]
 _HEIGHT_BINS = 8  # occupied-height classes per column
@@ -94,6 +95,26 @@ def measure_pair(m_i: OccupancyMap, m_j: OccupancyMap, T_i_j_init, config: Merge
     if r.confidence is not None:
         conf = float(r.confidence)
     return PairMeasurement(np.asarray(r.T_1_2, np.float64), Omega, conf, r, str(info.get("verdict", "ok")))
+
+
+def candidate_measurement(m_i: OccupancyMap, m_j: OccupancyMap, meas: PairMeasurement, c: int) -> PairMeasurement:
+    """``meas`` with its registration's candidate ``c`` (``Registration.candidates``, best
+    first) as the measurement: ``T_i_j`` that pose, the information matrix at it over both
+    maps' occupied voxels (``alignment_information``); confidence and verdict as ``meas``.
+    ``c = 0`` returns ``meas``. Raises ``IndexError`` for a candidate that does not exist."""
+    if c == 0:
+        return meas
+    T = np.asarray(meas.registration.candidates[c]["T_1_2"], np.float64)
+    res = float(m_i.resolution)
+    info = meas.registration.info or {}
+    d = float(info.get("correspondence_distance", 2 * res))
+    d = d if np.isfinite(d) and d > 0 else 2 * res
+    rmse = float(info.get("rmse", np.nan))
+    sigma = max(rmse if np.isfinite(rmse) else d / 2, res / 2)
+    p_i = np.asarray(reg.occupied_points(m_i), np.float32).reshape(-1, 3)
+    p_j = np.asarray(reg.occupied_points(m_j), np.float32).reshape(-1, 3)
+    Omega, _ = alignment_information(p_i, p_j, T, d, sigma)
+    return meas._replace(T_i_j=T, information=Omega)
 
 
 def describe_map(m: OccupancyMap, cell_m: float = DESCRIPTOR_CELL_M) -> np.ndarray:

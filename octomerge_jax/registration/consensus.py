@@ -1,0 +1,144 @@
+"""Which of each pair's candidate poses is the right one: the choice the other pairs agree with.
+
+A guess-free pairwise registration returns its best few distinct poses (``candidates``, best
+first). In a symmetric scene the best can be wrong (an office floor turned by pi, a corridor
+shifted by one bay) while the right pose is among the others; a second opinion comes from the
+other maps: if maps i, j and k overlap, the right ``T_i_k`` equals ``T_i_j T_j_k``. Here every
+map is placed relative to map 0 by the pose that most paths of one or two pairwise candidates
+lead to, then each pair keeps the candidate that agrees with the placed poses (or none).
+
+Greedy, largest support first: the unplaced map and pose cluster with the most paths (ties:
+the larger summed candidate score) is placed; a path is one candidate of an edge from a placed
+map, or two candidates through one unplaced map. A map is placed on a single path only when
+that path is a pair's own best candidate of an unambiguous registration (``trusted``). Cost:
+``O(n * d^2 * c^2)`` hypotheses per placement (``d`` edges per map, ``c`` candidates per
+edge); the pose graph (``posegraph.solve_robust``) then refines the chosen measurements.
+Reference: the pairwise-consistency selection of loop closures in multi-robot SLAM (PCM,
+Mangelson et al. 2018) on triangles instead of odometry (``docs/design.md``, "Choosing among
+a pair's candidate poses").
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+
+__all__ = ["Consensus", "choose_candidates"]
+
+
+class Consensus(NamedTuple):
+    """``choose_candidates``' result (host values)."""
+
+    T_0_k: np.ndarray  # (n, 4, 4) float64 poses of the placed maps (identity where unplaced)
+    placed: np.ndarray  # (n,) bool
+    choice: np.ndarray  # (m,) int: the candidate each edge keeps, -1: none agrees with the poses
+    support: np.ndarray  # (n,) int: paths that agreed on each map's pose (0 for map 0 / unplaced)
+
+
+def _close(A, B, rot_tol: float, trans_tol: float) -> bool:
+    """Rotation angle of ``A^T B`` within ``rot_tol`` [rad] and translations within
+    ``trans_tol`` [m] (host, float64)."""
+    if np.linalg.norm(A[:3, 3] - B[:3, 3]) > trans_tol:
+        return False
+    cos = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
+    return bool(np.arccos(np.clip(cos, -1.0, 1.0)) <= rot_tol)
+
+
+def choose_candidates(n: int, i: Sequence[int], j: Sequence[int], candidates: Sequence[Sequence[np.ndarray]],
+                      scores: Sequence[Sequence[float]], trusted: Sequence[bool], *, rot_tol: float = 0.1,
+                      trans_tol: float = 1.0) -> Consensus:
+    """Place maps ``0..n-1`` and pick one candidate per edge by agreement (module docstring).
+
+    Args:
+      n: maps; map 0 is the reference (identity).
+      i, j: ``(m,)`` edge ends: edge e's candidates are ``T_i_j`` (map j's frame into map i's).
+      candidates: per edge a list of ``(4, 4)`` candidate poses [m], best first (may be empty).
+      scores: per edge the candidates' scores (higher is better), for ties.
+      trusted: ``(m,)``: the edge's first candidate may place a map on its own (an ``"ok"``
+        registration).
+      rot_tol, trans_tol: two poses agree within this rotation [rad] and translation [m].
+
+    Returns a ``Consensus``. Raises ``ValueError`` when the lists' lengths differ."""
+    m = len(i)
+    if not (len(j) == len(candidates) == len(scores) == len(trusted) == m):
+        raise ValueError("i, j, candidates, scores and trusted need one entry per edge")
+    # directed adjacency: (neighbour, edge, candidate poses T_from_to)
+    adj: list[list[tuple[int, int, list[np.ndarray]]]] = [[] for _ in range(n)]
+    for e in range(m):
+        Ts = [np.asarray(T, np.float64) for T in candidates[e]]
+        adj[int(i[e])].append((int(j[e]), e, Ts))
+        adj[int(j[e])].append((int(i[e]), e, [np.linalg.inv(T) for T in Ts]))
+    T0 = np.tile(np.eye(4), (n, 1, 1))
+    placed = np.zeros(n, bool)
+    placed[0] = True
+    support = np.zeros(n, int)
+    while True:
+        best = None  # (paths, score, k, pose)
+        for k in np.flatnonzero(~placed):
+            hyps = _hypotheses(int(k), adj, T0, placed, scores)
+            for paths, score, pose in _clusters(hyps, rot_tol, trans_tol):
+                if paths < 2 and not any(t for t in _single_trust(int(k), hyps, paths, pose, rot_tol, trans_tol,
+                                                                   trusted)):
+                    continue
+                if best is None or (paths, score) > best[:2]:
+                    best = (paths, score, int(k), pose)
+        if best is None:
+            break
+        paths, _, k, pose = best
+        T0[k], placed[k], support[k] = pose, True, paths
+    choice = np.full(m, -1)
+    for e in range(m):
+        a, b = int(i[e]), int(j[e])
+        if not (placed[a] and placed[b]):
+            continue
+        want = np.linalg.inv(T0[a]) @ T0[b]
+        for c, T in enumerate(candidates[e]):
+            if _close(np.asarray(T, np.float64), want, rot_tol, trans_tol):
+                choice[e] = c
+                break
+    return Consensus(T0, placed, choice, support)
+
+
+def _hypotheses(k: int, adj, T0, placed, scores) -> list[tuple[np.ndarray, float, tuple]]:
+    """Poses of map k in map 0's frame by every path of one edge from a placed map, or of two
+    through an unplaced map: ``(pose, summed candidate score, ((edge, candidate), ...))``."""
+    out = []
+    for a, e, Ts in adj[k]:  # T_k_a per candidate
+        if placed[a]:
+            for c, T_k_a in enumerate(Ts):
+                out.append((T0[a] @ np.linalg.inv(T_k_a), float(scores[e][c]), ((e, c),)))
+            continue
+        for b, f, Us in adj[a]:  # through the unplaced map a: T_a_b
+            if b == k or not placed[b]:
+                continue
+            for c, T_k_a in enumerate(Ts):
+                for d, T_a_b in enumerate(Us):
+                    pose = T0[b] @ np.linalg.inv(T_k_a @ T_a_b)
+                    out.append((pose, float(scores[e][c]) + float(scores[f][d]), ((e, c), (f, d))))
+    return out
+
+
+def _clusters(hyps, rot_tol: float, trans_tol: float):
+    """Groups of agreeing hypotheses: ``(paths, summed score, pose)`` per group, the pose that
+    of its best-scored direct path (else its best-scored path). A path counts once per
+    group, and two paths over the same edge count once (they are not independent)."""
+    order = sorted(range(len(hyps)), key=lambda h: -hyps[h][1])
+    used = np.zeros(len(hyps), bool)
+    for h in order:
+        if used[h]:
+            continue
+        members = [g for g in range(len(hyps)) if not used[g] and _close(hyps[g][0], hyps[h][0], rot_tol, trans_tol)]
+        used[members] = True
+        first_edges = {hyps[g][2][0][0] for g in members}
+        direct = [g for g in members if len(hyps[g][2]) == 1]
+        anchor = max(direct or members, key=lambda g: hyps[g][1])
+        yield len(first_edges), float(sum(hyps[g][1] for g in members)), hyps[anchor][0]
+
+
+def _single_trust(k: int, hyps, paths: int, pose, rot_tol, trans_tol, trusted):
+    """For a group of one path: whether it is a trusted edge's first candidate."""
+    for T, _, path in hyps:
+        if len(path) == 1 and path[0][1] == 0 and trusted[path[0][0]] and _close(T, pose, rot_tol, trans_tol):
+            yield True
