@@ -72,12 +72,22 @@ def test_single_pair_places_only_when_trusted(trusted):
     assert out.choice.tolist() == ([0, 0] if trusted else [-1, -1])
 
 
+def test_equal_evidence_for_two_poses_places_nothing():
+    # a trusted pair says one pose, an equally strong path through a third map says another:
+    # the map is left unplaced rather than guessed
+    T = _truth(3)
+    Z01, Z02, Z12 = _rel(T, 0, 1), _rel(T, 0, 2), _rel(T, 1, 2)
+    out = choose_candidates(3, [0, 0, 1], [1, 2, 2], [[Z01], [_shifted(Z02, 6.0)], [Z12]], [[1.0], [1.0], [1.0]],
+                            [True, True, True])
+    assert not out.placed[1:].any() and (out.choice == -1).all()
+
+
 def test_edge_without_an_agreeing_candidate_is_set_aside():
     T = _truth(3)
     Z01, Z02, Z12 = _rel(T, 0, 1), _rel(T, 0, 2), _rel(T, 1, 2)
-    bad = [_half_turn(Z12), _shifted(Z12, 7.0)]  # neither candidate is the truth
-    out = choose_candidates(3, [0, 0, 1], [1, 2, 2], [[Z01], [Z02], bad], [[1.0], [1.0], [1.0, 0.5]],
-                            [True, True, True])
+    bad = [_half_turn(Z12), _shifted(Z12, 7.0)]  # neither candidate is the truth: a weak, ambiguous pair
+    out = choose_candidates(3, [0, 0, 1], [1, 2, 2], [[Z01], [Z02], bad], [[1.0], [1.0], [0.4, 0.35]],
+                            [True, True, False])
     assert out.placed.all()
     assert out.choice.tolist() == [0, 0, -1]
 

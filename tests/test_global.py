@@ -13,7 +13,7 @@ from octomerge_jax import registration as reg
 from octomerge_jax import se3
 from octomerge_jax.cli import main
 from octomerge_jax.io import save
-from octomerge_jax.pipeline import MergeConfig, merge, register_global, transform_from_xyz_rpy
+from octomerge_jax.pipeline import MergeConfig, merge, merge_batch, register_global, transform_from_xyz_rpy
 from octomerge_jax.registration.features import coarse_cloud, neighbor_pairs, normals
 from octomerge_jax.registration.global_search import (level_rotation, pose_distance, translation_candidates,
                                                       yaw_candidates)
@@ -134,6 +134,8 @@ def test_icp_in_a_wrong_basin_is_failed(room):
     _, rep = merge(m1, m2, guess, refine="icp", T_1_2_true=T_true)
     assert rep.epsilon_r > 0.5  # ICP did not find its way back from 1.3 rad...
     assert rep.status == "failed"  # ...and says so
+    (batched,) = merge_batch([(m1, m2, guess)], config=MergeConfig().replace(registration={"refine": "icp"}))
+    assert batched.report.status == "failed"  # the batched ICP path judges the same way
     _, good = merge(m1, m2, transform_from_xyz_rpy(0.62, -0.42, 0.0, 0.0, 0.0, 0.02), refine="icp",
                     T_1_2_true=T_true)
     assert good.status == "ok" and good.epsilon_r < 0.02

@@ -40,6 +40,10 @@ def test_alignment_information_is_the_point_to_point_hessian():
         J = np.hstack([np.eye(3), -se3.skew(x, xp=np)])
         H += J.T @ J
     np.testing.assert_allclose(Omega, H / (200 * 0.1 ** 2), rtol=1e-5, atol=1e-6)
+    # no points on a side (a registration that found no common region): no information, no error
+    for a, b in ((q, p[:0]), (q[:0], p)):
+        Omega, n = alignment_information(a, b, T, 0.05, sigma_m=0.1)
+        assert n == 0 and not Omega.any()
 
 
 def test_tum_and_json_of_a_report(tmp_path):

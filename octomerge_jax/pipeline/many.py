@@ -98,8 +98,9 @@ def _choose_by_consensus(maps, edges: list[dict], min_confidence: float) -> list
     """Guess-free edges: each ``"ok"`` or ``"ambiguous"`` registration's candidate poses go to
     ``consensus.choose_candidates``; an edge keeps the candidate the other pairs agree with
     (``figures["candidate"]``: its rank; ambiguous registrations become usable that way), or
-    is set aside as ``"inconsistent"`` when its maps are placed and no candidate agrees. Edges
-    of unplaced maps keep their verdict. In place; returns the edges that kept a candidate."""
+    is set aside as ``"inconsistent"`` when its maps are placed and no candidate agrees, or as
+    ``"undecided"`` when one of its maps is left unplaced (its pairs disagree: it is not placed
+    by one of them). In place; returns the edges that kept a candidate."""
     pool = [e for e in edges if e.get("meas") is not None and e["meas"].verdict in ("ok", "ambiguous")
             and e["conf"] >= min_confidence and e["reg"].candidates]
     if not pool:
@@ -120,6 +121,9 @@ def _choose_by_consensus(maps, edges: list[dict], min_confidence: float) -> list
             chosen.append(e)
         elif cons.placed[e["i"]] and cons.placed[e["j"]]:
             e["why"] = "inconsistent: none of its candidate poses agrees with the other pairs"
+        elif not e["why"]:  # an "ok" pair of a map the pairs disagree on: not placed by it alone
+            k = e["j"] if cons.placed[e["i"]] else e["i"]
+            e["why"] = f"undecided: the pairs of map {k} disagree on where it lies"
     return chosen
 
 

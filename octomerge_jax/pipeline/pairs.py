@@ -53,8 +53,11 @@ def alignment_information(points_i, points_j, T_i_j, distance_m: float, sigma_m:
     with the registration's rmse ``sigma_m`` as its scale; the Hessian keeps the shape: which
     directions the overlap constrains; ``docs/design.md``, "Pose graph over pairwise registrations").
     Zero without inliers."""
-    _, q = select_overlap(np.asarray(points_i, np.float32), np.asarray(points_j, np.float32),
-                          np.asarray(T_i_j, np.float64), "voxel", float(distance_m))
+    points_i = np.asarray(points_i, np.float32).reshape(-1, 3)
+    points_j = np.asarray(points_j, np.float32).reshape(-1, 3)
+    if points_i.shape[0] == 0 or points_j.shape[0] == 0:
+        return np.zeros((6, 6)), 0
+    _, q = select_overlap(points_i, points_j, np.asarray(T_i_j, np.float64), "voxel", float(distance_m))
     n = int(q.shape[0])
     if n == 0:
         return np.zeros((6, 6)), 0
