@@ -15,6 +15,7 @@ empty ``OCTOMERGE_CACHE_DIR``; "warm" is the median of ``--repeats`` runs after 
 
     .venv/bin/python benchmarks/bench_cli.py                  # everything (C++ peer if cmeel-octomap)
     .venv/bin/python benchmarks/bench_cli.py --pairs room --no-demo
+    .venv/bin/python benchmarks/bench_cli.py --in-process --pairs campus   # the stages in one process
 """
 
 from __future__ import annotations
@@ -114,13 +115,60 @@ def cpp_pipeline(p1, p2, T, work: Path):
     return statistics.median(runs)
 
 
+def in_process(p1, p2, T, name: str, work: Path, repeats: int = 3):
+    """Issue 38's in-process comparison on one pair: ``merge(..., refine="none")`` from the
+    guess in this process once compiled (median of ``repeats`` after a first call), against
+    the C++ stages' own clocks (Alg. 7's transform + prune, Alg. 8's merge + prune; no process
+    start, read or write). Returns ``(ours s, C++ s or None)``."""
+    import jax
+
+    from octomerge_jax import merge
+    from octomerge_jax.io import load
+    from octomerge_jax.pipeline import transform_from_xyz_rpy
+
+    m1, m2 = load(p1), load(p2)
+    G = T @ np.asarray(transform_from_xyz_rpy(*GUESS[name]))
+    runs = []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        out, _ = merge(m1, m2, G, refine="none")
+        jax.block_until_ready(out.code)
+        runs.append(time.perf_counter() - t0)
+    ours = statistics.median(runs[1:])
+    alg7, alg8 = _octomap_peer.build("alg7_octomap"), _octomap_peer.build("alg8_octomap")
+    if alg7 is None or alg8 is None:
+        return ours, None
+    cpp_pipeline(p1, p2, G, work)  # writes t.bin / m.bin for this transform
+    r7 = json.loads(subprocess.run([alg7, work / "t.bin"], capture_output=True, text=True, check=True).stdout
+                    .strip().splitlines()[-1])
+    r8 = json.loads(subprocess.run([alg8, work / "m.bin", "3", work / "merged.bin"], capture_output=True, text=True,
+                                   check=True).stdout.strip().splitlines()[-1])
+    return ours, r7["seconds"] + r8["merge_s"] + r8["prune_s"]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs", nargs="+", default=["room", "campus"], choices=sorted(GUESS))
     ap.add_argument("--repeats", type=int, default=2, help="warm runs (median)")
     ap.add_argument("--no-demo", action="store_true")
     ap.add_argument("--data-dir", type=Path, default=HERE / "_build" / "cli_data")
+    ap.add_argument("--in-process", action="store_true",
+                    help="only the in-process table: merge(refine='none') once compiled against the C++ stages")
     a = ap.parse_args()
+    if a.in_process:
+        work = Path(tempfile.mkdtemp(prefix="bench_cli_"))
+        try:
+            print("| pair | ours: merge(refine='none'), in process, once compiled [s] | "
+                  "C++ Alg. 7 transform + prune + Alg. 8 merge + prune [s] | C++ / ours |")
+            print("|---|---|---|---|")
+            for name in a.pairs:
+                p1, p2, T = make_pair(name, a.data_dir)
+                ours, cpp = in_process(p1, p2, T, name, work)
+                ratio = f"{cpp / ours:.1f}x" if cpp else "-"
+                print(f"| {name} | {ours:.3f} | {cpp if cpp is None else round(cpp, 3)} | {ratio} |", flush=True)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+        return
     a.data_dir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="bench_cli_"))
     cli = [PY, "-m", "octomerge_jax"]
