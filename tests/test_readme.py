@@ -46,6 +46,17 @@ def test_readme_library_example_runs(tmp_path):
     assert (tmp_path / "report.json").exists() and (tmp_path / "lab.ot").stat().st_size > 0
 
 
+@pytest.mark.slow
+def test_readme_many_robots_example_places_every_map(tmp_path):
+    """The Many robots example (guess-free office team) places all four maps and writes its poses."""
+    first = _python_blocks()[0]
+    team = next(b for b in _python_blocks() if "team_maps" in b)
+    out = _run(first + "\n" + team + "\nassert all(t is not None for t in report.transforms), report.summary()\n",
+               tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert len((tmp_path / "poses.tum").read_text().splitlines()) == 4
+
+
 def test_readme_names_exist():
     used = set(re.findall(r"\bom\.([A-Za-z_]\w*)", "".join(_python_blocks())))
     assert used and not {n for n in used if not hasattr(om, n)}
