@@ -86,12 +86,8 @@ def measure_pair(m_i: OccupancyMap, m_j: OccupancyMap, T_i_j_init, config: Merge
         if config.registration.refine == "none":
             raise MergeError("measure_pair needs a registration (refine is 'none')", "transform")
         r = register(m_i, m_j, np.asarray(T_i_j_init, np.float64), config, timings)
-    res = float(m_i.resolution)
     info = r.info or {}
-    d = float(info.get("correspondence_distance", 2 * res))
-    d = d if np.isfinite(d) and d > 0 else 2 * res
-    rmse = float(info.get("rmse", np.nan))
-    sigma = max(rmse if np.isfinite(rmse) else d / 2, res / 2)
+    d, rmse, sigma = _scales(info, float(m_i.resolution))
     Omega, n = alignment_information(r.points_1, r.points_2, r.T_1_2, d, sigma)
     fitness = n / max(int(np.asarray(r.points_2).shape[0]), 1)
     conf = float(np.clip(fitness * (1.0 - min(rmse if np.isfinite(rmse) else d, d) / d), 0.0, 1.0))
@@ -108,16 +104,19 @@ def candidate_measurement(m_i: OccupancyMap, m_j: OccupancyMap, meas: PairMeasur
     if c == 0:
         return meas
     T = np.asarray(meas.registration.candidates[c]["T_1_2"], np.float64)
-    res = float(m_i.resolution)
-    info = meas.registration.info or {}
+    d, _, sigma = _scales(meas.registration.info or {}, float(m_i.resolution))
+    Omega, _ = alignment_information(reg.occupied_points(m_i), reg.occupied_points(m_j), T, d, sigma)
+    return meas._replace(T_i_j=T, information=Omega)
+
+
+def _scales(info: dict, res: float) -> tuple[float, float, float]:
+    """``(d, rmse, sigma)`` [m] of a registration's figures ``info`` at resolution ``res``: its
+    last correspondence distance (``2 res`` when missing), its rmse (nan when missing) and the
+    error scale of ``alignment_information`` (the rmse, else ``d / 2``; at least ``res / 2``)."""
     d = float(info.get("correspondence_distance", 2 * res))
     d = d if np.isfinite(d) and d > 0 else 2 * res
     rmse = float(info.get("rmse", np.nan))
-    sigma = max(rmse if np.isfinite(rmse) else d / 2, res / 2)
-    p_i = np.asarray(reg.occupied_points(m_i), np.float32).reshape(-1, 3)
-    p_j = np.asarray(reg.occupied_points(m_j), np.float32).reshape(-1, 3)
-    Omega, _ = alignment_information(p_i, p_j, T, d, sigma)
-    return meas._replace(T_i_j=T, information=Omega)
+    return d, rmse, max(rmse if np.isfinite(rmse) else d / 2, res / 2)
 
 
 def describe_map(m: OccupancyMap, cell_m: float = DESCRIPTOR_CELL_M) -> np.ndarray:

@@ -28,7 +28,6 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-
 __all__ = ["Consensus", "MIN_MARGIN", "choose_candidates"]
 
 #: a map is placed only where its best pose has this many times the support of its next best
@@ -62,7 +61,8 @@ def choose_candidates(n: int, i: Sequence[int], j: Sequence[int], candidates: Se
       n: maps; map 0 is the reference (identity).
       i, j: ``(m,)`` edge ends: edge e's candidates are ``T_i_j`` (map j's frame into map i's).
       candidates: per edge a list of ``(4, 4)`` candidate poses [m], best first (may be empty).
-      scores: per edge the candidates' scores (higher is better), for ties.
+      scores: per edge the candidates' scores (higher is better): their weights in the vote
+        (a negative score counts nothing).
       trusted: ``(m,)``: the edge's first candidate may place a map on its own (an ``"ok"``
         registration).
       rot_tol, trans_tol: two poses agree within this rotation [rad] and translation [m].
@@ -118,7 +118,8 @@ def choose_candidates(n: int, i: Sequence[int], j: Sequence[int], candidates: Se
 
 def _hypotheses(k: int, adj, T0, placed, scores) -> list[tuple[np.ndarray, float, tuple]]:
     """Poses of map k in map 0's frame by every path of one edge from a placed map, or of two
-    through an unplaced map: ``(pose, summed candidate score, ((edge, candidate), ...))``."""
+    through an unplaced map: ``(pose, weight, ((edge, candidate), ...))``, the weight that of
+    the path's weakest candidate."""
     out = []
     for a, e, Ts in adj[k]:  # T_k_a per candidate
         if placed[a]:
@@ -141,8 +142,9 @@ def _weight(score) -> float:
 
 
 def _clusters(hyps, rot_tol: float, trans_tol: float):
-    """Groups of agreeing hypotheses: ``(paths, support, pose, {edge: weight})`` per group. A path's weight is
-    its weakest candidate's; paths leaving map k over the same edge are not independent, so
+    """Groups of agreeing hypotheses: ``(paths, support, pose, {edge: weight})`` per group.
+    A path's weight is its weakest candidate's; paths leaving map k over the same edge are not
+    independent, so
     each such edge adds its best path's weight once (``support``) and counts once
     (``paths``). The pose is that of the group's best direct path (else its best path)."""
     order = sorted(range(len(hyps)), key=lambda h: -hyps[h][1])
