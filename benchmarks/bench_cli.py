@@ -92,13 +92,23 @@ def guess_args(name, T):
 def cpp_pipeline(p1, p2, T, work: Path):
     """The thesis pipeline on OctoMap (transform map 2, merge into map 1, prune, write): wall
     seconds of the two peer processes, or ``None`` without g++ / cmeel-octomap."""
+    alg7, alg8 = _octomap_peer.build("alg7_octomap"), _octomap_peer.build("alg8_octomap")
+    if alg7 is None or alg8 is None:
+        return None
+    write_peer_inputs(p1, p2, T, work)
+    runs = []
+    for _ in range(3):
+        runs.append(timed([alg7, work / "t.bin"]) + timed([alg8, work / "m.bin", "1", work / "merged.bin"]))
+    return statistics.median(runs)
+
+
+def write_peer_inputs(p1, p2, T, work: Path) -> None:
+    """The C++ peers' inputs: ``t.bin`` (map 2's leaves and ``T`` for Alg. 7) and ``m.bin``
+    (map 1's leaves, map 2 transformed by ``T`` and the clamping bounds for Alg. 8)."""
     from octomerge_jax.io import load
     from octomerge_jax.map import OccupancyParams
     from octomerge_jax.resample import transform_map
 
-    alg7, alg8 = _octomap_peer.build("alg7_octomap"), _octomap_peer.build("alg8_octomap")
-    if alg7 is None or alg8 is None:
-        return None
     m1, m2 = load(p1), load(p2)
     m2t = transform_map(m2, T)
     P = OccupancyParams()
@@ -109,14 +119,10 @@ def cpp_pipeline(p1, p2, T, work: Path):
         _octomap_peer.write_leaves(fh, m1)
         _octomap_peer.write_leaves(fh, m2t)
         np.array([P.clamp_min_log_odds, P.clamp_max_log_odds], np.float32).tofile(fh)
-    runs = []
-    for _ in range(3):
-        runs.append(timed([alg7, work / "t.bin"]) + timed([alg8, work / "m.bin", "1", work / "merged.bin"]))
-    return statistics.median(runs)
 
 
 def in_process(p1, p2, T, name: str, work: Path, repeats: int = 3):
-    """Issue 38's in-process comparison on one pair: ``merge(..., refine="none")`` from the
+    """The stages in one process on one pair: ``merge(..., refine="none")`` from the
     guess in this process once compiled (median of ``repeats`` after a first call), against
     the C++ stages' own clocks (Alg. 7's transform + prune, Alg. 8's merge + prune; no process
     start, read or write). Returns ``(ours s, C++ s or None)``."""
@@ -138,7 +144,7 @@ def in_process(p1, p2, T, name: str, work: Path, repeats: int = 3):
     alg7, alg8 = _octomap_peer.build("alg7_octomap"), _octomap_peer.build("alg8_octomap")
     if alg7 is None or alg8 is None:
         return ours, None
-    cpp_pipeline(p1, p2, G, work)  # writes t.bin / m.bin for this transform
+    write_peer_inputs(p1, p2, G, work)
     r7 = json.loads(subprocess.run([alg7, work / "t.bin"], capture_output=True, text=True, check=True).stdout
                     .strip().splitlines()[-1])
     r8 = json.loads(subprocess.run([alg8, work / "m.bin", "3", work / "merged.bin"], capture_output=True, text=True,
