@@ -334,21 +334,20 @@ def _report(problem: Problem, source, source_count, target, clouds: QueryClouds,
     last = problem.last_stage
     p, T = state.progress, state.T_plain
     status = jnp.where(p.done, p.status, Status.MAX_ITERATIONS).astype(jnp.int32)
+    d2, m_fin = correspond(problem, T, jnp.int32(last), clouds.full)
     m = state.matches
     if clouds.coarse is not None:
-        # stopped on a coarse stage (max_iterations): its correspondences name centroids; the
-        # derivative below needs the source points' own, at that stage (a cond: the usual stop,
-        # at the last stage, skips this full-cloud query)
-        m = Matches(*jax.lax.cond(p.stage == last, lambda: tuple(m),
-                                  lambda: tuple(correspond(problem, T, p.stage, clouds.full)[1])))
-    d2, m_fin = correspond(problem, T, jnp.int32(last), clouds.full)
+        # stopped on a coarse stage (max_iterations): its correspondences name centroids of a
+        # coarser query cloud; the derivative below takes the source points' nearest points
+        m = Matches(*(jnp.where(p.stage == last, a, b) for a, b in zip(m, m_fin)))
     n_in = jnp.sum(m_fin.inlier).astype(jnp.int32)
     rmse = jnp.sqrt(jnp.sum(jnp.where(m_fin.inlier, d2, 0.0)) / jnp.maximum(n_in, 1).astype(jnp.float32))
     n_valid = jnp.maximum(source_count, 1).astype(jnp.float32)
     d_floor2 = problem.dists[last] * problem.dists[last]
     # y has the value of the matched coordinates (T is exactly their least-squares solution)
-    # and the derivative of the matched target points (exact at the finest stage; on a coarse
-    # centroid stage, reached only via max_iterations, it is that of one member point)
+    # and the derivative of the matched target points (exact at the finest stage; a run stopped
+    # on a coarse stage by max_iterations takes the nearest points at T, of which T is not the
+    # exact solution)
     y_t = jnp.asarray(target, jnp.float32)[m.index]
     y = jax.lax.stop_gradient(m.point) + (y_t - jax.lax.stop_gradient(y_t))
     return IcpResult(
