@@ -15,8 +15,8 @@ from octomerge_jax.cli import main
 from octomerge_jax.io import save
 from octomerge_jax.pipeline import MergeConfig, merge, merge_batch, register_global, transform_from_xyz_rpy
 from octomerge_jax.registration.features import coarse_cloud, neighbor_pairs, normals
-from octomerge_jax.registration.global_search import (level_rotation, pose_distance, translation_candidates,
-                                                      yaw_candidates)
+from octomerge_jax.registration.global_search import (cell_sets, consistency_score, level_rotation, nudge_poses,
+                                                      pose_distance, translation_candidates, yaw_candidates)
 from octomerge_jax.sim import small_room_map, small_room_voxels
 from octomerge_jax.tree import from_voxels
 
@@ -45,6 +45,21 @@ def test_translation_correlation_finds_a_shift():
     t0 = np.array([1.3, -2.1, 0.4])
     t, score = translation_candidates(p, p - t0, 0.25, num_peaks=2)
     assert np.abs(t[0] - t0).max() <= 0.25 and score[0] > score[1]
+
+
+def test_nudge_moves_a_pose_a_third_of_a_cell_off_back(room):
+    occ, free = room
+    v = 0.25
+    s = cell_sets(occ, free, v)
+    T_off = transform_from_xyz_rpy(0.09, -0.08, 0.0, 0.0, 0.0, 0.0)  # a third of a cell off
+    T_far = transform_from_xyz_rpy(3.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    poses, scores = nudge_poses(s, s, np.stack([T_off, T_far]), v / 2, 3.0)
+    a0, c0 = consistency_score(s, s, T_off)
+    a1, c1 = consistency_score(s, s, poses[0])
+    assert scores[0] == a1 - 3.0 * c1 > a0 - 3.0 * c0
+    assert np.linalg.norm(poses[0][:3, 3]) < np.linalg.norm(T_off[:3, 3])  # towards the truth (identity)
+    assert np.allclose(poses[:, :3, :3], np.stack([T_off, T_far])[:, :3, :3])  # rotations kept
+    assert scores[1] < scores[0]
 
 
 def test_yaw_and_level_from_normals():

@@ -8,13 +8,14 @@ guess is given): ``register_global``; and the verdict on a local ICP result, ``j
         per yaw: FFT cross-correlation of the coarse occupancy grids, less free-space
                  conflicts ──> a few translations                ──> ~18 poses
         net agreement on the coarse cells (agree - 3 x conflict, both directions)
-        ──> top distinct poses ──ICP on the commonly mapped subsets (thesis Alg. 2-3)
+        ──> top distinct poses, and the best once nudged by half cells ──ICP on the commonly mapped subsets (thesis Alg. 2-3)
         ──> net agreement again: best, second-best distinct pose ──> verdict, confidence
 
 Verdict (``Registration.info["verdict"]``, the merge's ``MergeReport.status``): ``"ok"``;
 ``"ambiguous"`` when a distinct second pose agrees nearly as well (symmetric rooms,
-corridors) or the confidence is below ``MIN_CONFIDENCE`` (so little overlap that another
-placement, e.g. beside map 1 sharing a wall, is about as consistent); ``"no_overlap"`` when the best pose explains too little of the smaller map;
+corridors), the confidence is below ``MIN_CONFIDENCE`` or the net shared share below
+``MIN_SHARED_OK`` (so little overlap that another placement, e.g. beside map 1 sharing a wall,
+is about as consistent); ``"no_overlap"`` when the best pose explains too little of the smaller map;
 ``"failed"`` when its ICP did not end usable. Maps are assumed gravity-aligned to within a
 few degrees (``registration.global_search``). The thresholds are calibrated on the benchmark
 grid (``benchmarks/bench_global.py``); see
@@ -35,13 +36,14 @@ from ..map import OccupancyMap, bucket_capacity
 from ..registration import Status
 from ..registration.features import coarse_cloud, coarse_voxel_size, neighbor_pairs, normals
 from ..registration.global_search import (cell_sets, consistency_score, distinct_poses, free_points, level_rotation,
-                                                  pose_distance, rotation_z, translation_candidates, yaw_candidates)
+                                                  nudge_poses, pose_distance, rotation_z, translation_candidates, yaw_candidates)
 from .clouds import icp_info, icp_kwargs, occupied_clouds, overlap_margin, select_overlap
 from .config import MergeConfig
 from .report import MergeError, Registration
 from .timings import Timings
 
-__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MIN_CONFIDENCE", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS", "MIN_SHARED", "explained_fraction",
+__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MIN_CONFIDENCE", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS", "MIN_SHARED",
+           "MIN_SHARED_OK", "explained_fraction",
            "judge_local", "register_global"]
 
 #: a distinct second pose whose net agreement is within this share of the best's: "ambiguous"
@@ -54,6 +56,9 @@ CONFLICT_WEIGHT = 3.0
 MIN_SHARED = 0.1
 #: below this confidence a result is not "ok": little overlap leaves other placements about as good
 MIN_CONFIDENCE = 0.3
+#: net shared share (as MIN_SHARED) below which a result is at most "ambiguous": a placement beside map 1
+#: sharing a wall conflicts with nothing and explains about as much
+MIN_SHARED_OK = 0.2
 #: a local ICP result whose fitness (inliers over map 2's commonly mapped points) is below: "failed"
 MIN_LOCAL_FITNESS = 0.3
 _NORMAL_RADIUS = 2.0  # [coarse cells]
@@ -168,7 +173,12 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         s1 = cell_sets(p1, free_points(m1, v), v)
         s2 = cell_sets(p2, free_points(m2, v), v)
         screened = np.array([_score(s1, s2, T) for T in T_all], np.float64)
-        picked = distinct_poses(T_all, screened, extent, 2.0 * v, _NUM_REFINED)
+        picked = list(distinct_poses(T_all, screened, extent, 2.0 * v, _NUM_REFINED))
+        # and the best after half-cell nudges, if another: a pose a third of a cell off ranks low
+        nudged = nudge_poses(s1, s2, T_all, v / 2, CONFLICT_WEIGHT)[1]
+        i_nudged = int(np.argmax(nudged))
+        if all(pose_distance(T_all[i_nudged], T_all[i], extent) >= 2.0 * v for i in picked):
+            picked.append(i_nudged)
     refined = [_refine(p1, p2, T_all[i], int(i), config, resolution, timings) for i in picked]
     with timings.stage("verify"):
         agree_conflict = [consistency_score(s1, s2, r.T_1_2) for r in refined]
@@ -191,7 +201,8 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         verdict = "failed"
     else:
         confidence = _confidence(gap, shared)
-        verdict = "ok" if gap >= AMBIGUOUS_GAP and confidence >= MIN_CONFIDENCE else "ambiguous"
+        trusted = gap >= AMBIGUOUS_GAP and confidence >= MIN_CONFIDENCE and shared >= MIN_SHARED_OK
+        verdict = "ok" if trusted else "ambiguous"
     confidence = _confidence(gap, shared)
     info_g.update(cells=[int(s1.occupied.codes.shape[0]), int(s2.occupied.codes.shape[0])],
                   screened=[round(float(x), 1) for x in screened[picked]], agree=agree, conflict=conflict,
