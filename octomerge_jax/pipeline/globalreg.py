@@ -8,7 +8,8 @@ guess is given): ``register_global``; and the verdict on a local ICP result, ``j
         per yaw: FFT cross-correlation of the coarse occupancy grids, less free-space
                  conflicts ──> a few translations                ──> ~18 poses
         net agreement on the coarse cells (agree - 3 x conflict, both directions)
-        ──> top distinct poses, and the best once nudged by half cells ──ICP on the commonly mapped subsets (thesis Alg. 2-3)
+        ──> top distinct poses, and the best once nudged by half cells
+        ──ICP on the commonly mapped subsets (thesis Alg. 2-3)
         ──> net agreement again: best, second-best distinct pose ──> verdict, confidence
 
 Verdict (``Registration.info["verdict"]``, the merge's ``MergeReport.status``): ``"ok"``;
@@ -36,7 +37,8 @@ from ..map import OccupancyMap, bucket_capacity
 from ..registration import Status
 from ..registration.features import coarse_cloud, coarse_voxel_size, neighbor_pairs, normals
 from ..registration.global_search import (cell_sets, consistency_score, distinct_poses, free_points, level_rotation,
-                                                  nudge_poses, pose_distance, rotation_z, translation_candidates, yaw_candidates)
+                                                  net_agreement, nudge_poses, pose_distance, rotation_z,
+                                                  translation_candidates, yaw_candidates)
 from .clouds import icp_info, icp_kwargs, occupied_clouds, overlap_margin, select_overlap
 from .config import MergeConfig
 from .report import MergeError, Registration
@@ -172,7 +174,7 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     with timings.stage("verify"):
         s1 = cell_sets(p1, free_points(m1, v), v)
         s2 = cell_sets(p2, free_points(m2, v), v)
-        screened = np.array([_score(s1, s2, T) for T in T_all], np.float64)
+        screened = np.array([net_agreement(s1, s2, T, CONFLICT_WEIGHT) for T in T_all], np.float64)
         picked = list(distinct_poses(T_all, screened, extent, 2.0 * v, _NUM_REFINED))
         # and the best after half-cell nudges, if another: a pose a third of a cell off ranks low
         nudged = nudge_poses(s1, s2, T_all, v / 2, CONFLICT_WEIGHT)[1]
@@ -195,15 +197,14 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     with timings.stage("verify"):
         n_in, explained = explained_fraction(p1, p2, best.T_1_2, 2.0 * resolution, config)
     usable = best.result is not None and Status(int(best.result.status)).usable
+    confidence = _confidence(gap, shared)
     if shared < MIN_SHARED or explained < MIN_EXPLAINED:
         verdict = "no_overlap"
     elif not usable:
         verdict = "failed"
     else:
-        confidence = _confidence(gap, shared)
         trusted = gap >= AMBIGUOUS_GAP and confidence >= MIN_CONFIDENCE and shared >= MIN_SHARED_OK
         verdict = "ok" if trusted else "ambiguous"
-    confidence = _confidence(gap, shared)
     info_g.update(cells=[int(s1.occupied.codes.shape[0]), int(s2.occupied.codes.shape[0])],
                   screened=[round(float(x), 1) for x in screened[picked]], agree=agree, conflict=conflict,
                   shared=round(shared, 4), explained=round(explained, 4), explained_points=n_in, gap=round(gap, 4))
@@ -217,11 +218,6 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     return Registration(T_1_2=best.T_1_2, converged=bool(info["converged"]), info=info, result=best.result,
                         counts=counts, points_1=q1, points_2=q2, warnings=warnings, confidence=confidence,
                         candidates=candidates)
-
-
-def _score(s1, s2, T) -> float:
-    a, c = consistency_score(s1, s2, T)
-    return float(a - CONFLICT_WEIGHT * c)
 
 
 def _confidence(gap: float, shared: float) -> float:

@@ -29,8 +29,8 @@ import numpy as np
 from ..map import OccupancyMap
 from .features import CoarseCloud, cell_codes, coarse_cloud
 
-__all__ = ["CellSets", "cell_sets", "consistency_score", "distinct_poses", "free_points", "level_rotation", "nudge_poses",
-           "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates"]
+__all__ = ["CellSets", "cell_sets", "consistency_score", "distinct_poses", "free_points", "level_rotation",
+           "net_agreement", "nudge_poses", "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates"]
 
 _YAW_BINS = 180  # over [0, pi): 1 degree
 
@@ -190,6 +190,13 @@ def cell_sets(points, free, voxel: float) -> CellSets:
     return CellSets(occ, codes[~np.isin(codes, occ.codes)])
 
 
+def net_agreement(s1: CellSets, s2: CellSets, T_1_2, conflict_weight: float) -> float:
+    """``agree - conflict_weight x conflict`` of ``consistency_score`` at ``T_1_2 (4, 4)``
+    [coarse cells]: how well a pose explains both maps, free space included."""
+    agree, conflict = consistency_score(s1, s2, T_1_2)
+    return float(agree - conflict_weight * conflict)
+
+
 def nudge_poses(s1: CellSets, s2: CellSets, poses, step: float, conflict_weight: float, rounds: int = 3):
     """``(poses (k, 4, 4) float64, net agreements (k,))``: each pose ``T_1_2`` of ``poses (k,
     4, 4)`` moved by up to ``rounds`` steps of ``step`` [m] along x, y or z of map 1's frame,
@@ -198,8 +205,7 @@ def nudge_poses(s1: CellSets, s2: CellSets, poses, step: float, conflict_weight:
     lie up to half a cell off, and a pose a third of a cell off conflicts on every surface:
     unnudged, it can rank below a wrong pose (half a cell is ``step = voxel / 2``)."""
     def net(T):
-        agree, conflict = consistency_score(s1, s2, T)
-        return agree - conflict_weight * conflict
+        return net_agreement(s1, s2, T, conflict_weight)
 
     moves = [sign * float(step) * np.eye(3)[k] for k in range(3) for sign in (-1.0, 1.0)]
     out, scores = [], []
