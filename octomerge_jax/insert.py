@@ -39,7 +39,6 @@ ties, bit-identical log-odds on the common voxels).
 from __future__ import annotations
 
 import dataclasses
-from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -49,6 +48,7 @@ import numpy as np
 from . import morton
 from ._ops import bucket_capacity, quarter_octave_capacity
 from .budget import check_allocation
+from .kernel_store import stored_jit
 from .map import OccupancyMap
 from .tree import apply_voxel_updates
 
@@ -162,7 +162,7 @@ def _local_morton(local):
     return jnp.asarray(_LOCAL_MORTON)[local[..., 0] | (local[..., 1] << 3) | (local[..., 2] << 6)]
 
 
-@partial(jax.jit, static_argnames=("resolution", "cap_b"))
+@stored_jit(static_argnames=("resolution", "cap_b"))
 def _trace(points, valid, origin, max_range, brick_min, brick_dims, n_bricks, max_steps, *,
            resolution: float, cap_b: int):
     """DDA of every ray into a dense box of 8^3 bricks laid out in Morton order.
@@ -243,7 +243,7 @@ def _trace(points, valid, origin, max_range, brick_min, brick_dims, n_bricks, ma
             overflow)
 
 
-@partial(jax.jit, static_argnames=("capacity", "brick_capacity"))
+@stored_jit(static_argnames=("capacity", "brick_capacity"))
 def _extract(grid, brick_words, *, capacity: int, brick_capacity: int) -> ScanUpdate:
     """Marked cells -> Morton words (already sorted: bricks by rank, cells by local Morton)."""
     cap_b = brick_words.shape[0]

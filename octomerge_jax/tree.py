@@ -20,6 +20,7 @@ from . import morton
 from ._ops import bucket_capacity, cummax, cummin, cumsum, materialize, padding_rows, shift_down, shift_up
 from ._sort import lexsort_rows
 from .budget import check_allocation
+from .kernel_store import stored_jit
 from .map import OccupancyMap, OccupancyParams, from_leaves, from_words
 
 __all__ = [
@@ -299,7 +300,7 @@ def _plan_updates(m: OccupancyMap, words, valid):
 _plan_updates_jit = jax.jit(_plan_updates)
 
 
-@functools.partial(jax.jit, static_argnames=("split_capacity",))
+@stored_jit(static_argnames=("split_capacity",))
 def _plan_splits(p, split_capacity: int):
     """The sibling 'filler' leaves that local expansion of coarse leaves creates, planned on
     the voxels inside coarse leaves only (compacted to ``split_capacity`` rows; every voxel
@@ -335,7 +336,7 @@ def _plan_splits(p, split_capacity: int):
     return dict(sidx=sidx, masks=masks.reshape(-1), n_fill=n_fill, num_fill=jnp.sum(n_fill))
 
 
-@functools.partial(jax.jit, static_argnames=("fill_capacity", "capacity"))
+@stored_jit(static_argnames=("fill_capacity", "capacity"))
 def _apply_updates(m: OccupancyMap, p, s, deltas, fill_capacity: int, capacity: int):
     n = deltas.shape[0]
     code = p["code"]

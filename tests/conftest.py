@@ -5,7 +5,8 @@ One JAX persistent compilation cache per test run, shared by the xdist workers a
 subprocesses the tests start: a kernel compiled by one worker is loaded, not compiled again, by
 the others (docs/design.md, "Compile cache and warm-up"). ``OCTOMERGE_TEST_CACHE_DIR`` names a
 directory to keep it in across runs (``off``: no cache); by default it is a temporary directory
-removed at the end of the run."""
+removed at the end of the run. The kernel store (``kernel_store``) lives in it too and is open
+in every test process, as in a command."""
 
 import os
 import shutil
@@ -13,6 +14,8 @@ import tempfile
 
 import jax
 import pytest
+
+from octomerge_jax import kernel_store
 
 _KEY = "octomerge_test_xla_cache"
 
@@ -39,6 +42,7 @@ def pytest_configure(config):
     if path:
         jax.config.update("jax_compilation_cache_dir", path)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        kernel_store.open_store(os.path.join(path, "kernels"))
     # CLI subprocesses use the same cache; in-process CLI calls find JAX's cache already set and
     # change nothing (tests/test_cli_io.py checks the CLI's own cache setting in a subprocess)
     os.environ["OCTOMERGE_CACHE_DIR"] = path or "off"

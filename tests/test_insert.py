@@ -159,10 +159,10 @@ def test_no_recompile_same_bucket():
 
     plan = insert.CapacityPlan(points=1024, bricks=4096, marked=1 << 15, marked_bricks=1024)
     insert.compute_update(cloud(), np.zeros(3), res, plan=plan)
-    traces, extracts = insert._trace._cache_size(), insert._extract._cache_size()
+    traces, extracts = insert._trace.programs(), insert._extract.programs()
     insert.compute_update(cloud(), np.array([0.01, 0.02, 0.0]), res, plan=plan)
-    assert insert._trace._cache_size() == traces
-    assert insert._extract._cache_size() == extracts
+    assert insert._trace.programs() == traces
+    assert insert._extract.programs() == extracts
 
 
 def test_bad_arguments():

@@ -90,13 +90,13 @@ def test_vmap_over_pairs_matches_single_runs_and_does_not_recompile(scene):
     for i, T in enumerate(truths):
         single = run(S[i], SC[i], Tg[i], TC[i])
         if compiled is None:  # after the first single call (whatever earlier tests compiled)
-            compiled = _single.solve_padded._cache_size()
+            compiled = _single.solve_padded.programs()
         np.testing.assert_allclose(np.asarray(batched.T_target_source[i]), np.asarray(single.T_target_source),
                                    atol=1e-5)
         rot, tr = _errors(single.T_target_source, T)
         assert rot < 1e-4 and tr < 1e-4
     # the second single call (other data, same bucket) reused the first compilation
-    assert _single.solve_padded._cache_size() == compiled
+    assert _single.solve_padded.programs() == compiled
     # the stacked entry point merge_batch uses: pair after pair (CPU default) or one vmap batch
     d, eps = jnp.asarray(dists), jnp.float32(RES / 60)
     for sequential in (True, False):

@@ -89,3 +89,20 @@ def test_warmup_merges_the_room_pair_into_the_cache(capsys):
     out = capsys.readouterr().out
     assert "room at 0.2 m" in out and "refine none" in out and "programs compiled" in out
     assert f"cache: {cache.worker_env()['JAX_COMPILATION_CACHE_DIR']}" in out
+
+
+def test_a_batch_worker_opens_the_kernel_store_its_parent_handed_over(tmp_path):
+    from octomerge_jax import kernel_store
+
+    run_store = kernel_store.store_dir()  # tests/conftest.py opens the run's
+    kernel_store.close_store()
+    try:
+        cache.open_worker_store({})
+        assert kernel_store.store_dir() is None and cache.STORE_VARIABLE not in cache.worker_env()
+        cache.open_worker_store({cache.STORE_VARIABLE: str(tmp_path / "kernels")})
+        assert kernel_store.store_dir() == tmp_path / "kernels"
+        assert cache.worker_env()[cache.STORE_VARIABLE] == str(tmp_path / "kernels")
+    finally:
+        kernel_store.close_store()
+        if run_store is not None:
+            kernel_store.open_store(run_store)

@@ -17,7 +17,7 @@ import sys
 from ..budget import MemoryBudgetError
 from ..hostmem import reuse_host_memory
 from ._common import CliError
-from .cache import enable_compilation_cache
+from .cache import command_caches
 
 # command -> (module in this package, the one-line summary ``octomerge --help`` shows; the same
 # text as the module's ``add_parser(help=...)``, checked by tests/test_startup.py), in --help order
@@ -86,9 +86,9 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 2
-    enable_compilation_cache()
     try:
-        return int(args.func(args) or 0)
+        with command_caches():
+            return int(args.func(args) or 0)
     except CliError as err:
         print(f"octomerge {args.command}: error: {err}", file=sys.stderr)
         return err.exit_code

@@ -1,13 +1,19 @@
-"""JAX's persistent compilation cache for the command line (never turned on by importing the
-library): where it lives, turning it on in this process, and handing it to worker processes.
+"""JAX's persistent compilation cache and the kernel store for the command line (never turned on
+by importing the library): where they live, turning them on in this process, and handing them to
+worker processes.
 docs/design.md, "Compile cache and warm-up"."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
-__all__ = ["cache_dir", "enable_compilation_cache", "worker_env"]
+__all__ = ["cache_dir", "enable_compilation_cache", "command_caches", "worker_env", "open_worker_store",
+           "STORE_VARIABLE"]
+
+STORE_VARIABLE = "OCTOMERGE_KERNEL_STORE"
+"""Environment variable that hands the kernel store to ``batch``'s worker processes."""
 
 _OFF = ("", "off", "0", "none")
 
@@ -50,15 +56,48 @@ def enable_compilation_cache() -> str | None:
     return path
 
 
+@contextlib.contextmanager
+def command_caches():
+    """What one ``octomerge`` command runs inside: JAX's persistent compilation cache turned on
+    (``enable_compilation_cache``; it stays on) and the merge's large kernels kept, ready to
+    load without tracing, in the kernel store ``cache_dir()/kernels`` (``kernel_store``; closed
+    again at the end unless it was open before). ``$OCTOMERGE_CACHE_DIR=off`` turns both off."""
+    from ..kernel_store import close_store, open_store, store_dir
+
+    enable_compilation_cache()
+    path = cache_dir()
+    opened = path is not None and store_dir() is None and open_store(Path(path) / "kernels") is not None
+    try:
+        yield
+    finally:
+        if opened:
+            close_store()
+
+
 def worker_env() -> dict[str, str]:
     """Environment variables that give worker processes (``octomerge batch --workers N``) this
-    process's compilation cache, so a program compiled by one worker (or an earlier run) is
-    loaded, not compiled again, by the others: ``{}`` when no cache is on here."""
+    process's compilation cache and kernel store, so a program compiled by one worker (or an
+    earlier run) is loaded, not compiled again, by the others: ``{}`` when no cache is on here."""
     import jax
 
+    from ..kernel_store import store_dir
+
+    env = {}
     path = jax.config.jax_compilation_cache_dir
-    if not path:
-        return {}
-    return {"JAX_COMPILATION_CACHE_DIR": str(path),
-            "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS":
-                str(jax.config.jax_persistent_cache_min_compile_time_secs)}
+    if path:
+        env.update({"JAX_COMPILATION_CACHE_DIR": str(path),
+                    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS":
+                        str(jax.config.jax_persistent_cache_min_compile_time_secs)})
+    if store_dir() is not None:
+        env[STORE_VARIABLE] = str(store_dir())
+    return env
+
+
+def open_worker_store(environ=os.environ) -> None:
+    """In a worker process of ``batch``: open the kernel store its parent handed over in
+    ``$OCTOMERGE_KERNEL_STORE`` (nothing when unset or already open)."""
+    from ..kernel_store import open_store, store_dir
+
+    path = environ.get(STORE_VARIABLE)
+    if path and store_dir() is None:
+        open_store(path)

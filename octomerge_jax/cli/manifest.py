@@ -25,6 +25,7 @@ from .._fileutil import atomic_output
 from ..pipeline import MergeConfig, config_from_dict, config_to_dict
 from ..io import load, save
 from ..pipeline import MergeError, merge, transform_from_xyz_rpy
+from .cache import open_worker_store
 from .dask_runner import map_on_dask
 from .manifest_groups import ManifestGroup, assemble_groups, group_figures, merge_group
 from .outputs import MAP_SUFFIXES, angle_warnings, folder_lock, inside, same_file
@@ -258,7 +259,9 @@ def run_group(group: ManifestGroup, config_dict: dict, write_reports: bool = Tru
 
 
 def run_job(job: ManifestRow | ManifestGroup, config_dict: dict, write_reports: bool = True) -> dict:
-    """``run_group`` for a group, ``run_pair`` for a pair (the Dask task)."""
+    """``run_group`` for a group, ``run_pair`` for a pair (the Dask task; on a worker it opens
+    the kernel store its parent handed over)."""
+    open_worker_store()
     if isinstance(job, ManifestGroup):
         return run_group(job, config_dict, write_reports)
     return run_pair(job, config_dict, write_reports)

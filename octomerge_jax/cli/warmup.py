@@ -81,6 +81,7 @@ def run(args) -> int:
     _check(args)
     import jax
 
+    from ..kernel_store import LOAD_EVENT
     from ..pipeline import MergeConfig, MergeError, merge
 
     compiled, loaded = Counter(), Counter()
@@ -91,7 +92,7 @@ def run(args) -> int:
             compiled["seconds"] += secs
 
     def on_event(event, **kw):
-        if event == "/jax/compilation_cache/cache_hits":
+        if event in ("/jax/compilation_cache/cache_hits", LOAD_EVENT):
             loaded["programs"] += 1
 
     jax.monitoring.register_event_duration_secs_listener(on_compile)

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 
 from .. import tree
 from .._ops import bucket_capacity, cumsum, is_traced, padding_rows
+from ..kernel_store import stored_jit
 from ..map import OccupancyMap
 from ._gaps import gap_cell_once
 from ._layout import Cells, cell_owners, excl_at, put_selfs
@@ -164,7 +165,7 @@ def pair_kernel(m1: OccupancyMap, m2: OccupancyMap, w1, w2, mode, capacity: int,
     return out, rep, (n_gap, n_gap_leaves)
 
 
-@functools.partial(jax.jit, static_argnames=("gap_rows",))
+@stored_jit(static_argnames=("gap_rows",))
 def plan_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, mode, gap_rows: int) -> PairPlan:
     """The pair kernel's first phase, for a host that sizes the output from it: the merge,
     both sides, the ``gap_rows``-row list of leaves with gaps and every leaf's cells
@@ -182,7 +183,7 @@ def plan_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, mode, gap_rows: int) -
                     gap_cells=(jnp.sum(g.n_before + g.n_after) + g.missed).astype(jnp.int32))
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "cell_rows", "do_prune"))
+@stored_jit(static_argnames=("capacity", "cell_rows", "do_prune"))
 def emit_pair(plan: PairPlan, m1: OccupancyMap, m2: OccupancyMap, capacity: int, cell_rows: int,
               do_prune: bool):
     """The pair kernel's second phase: ``plan_pair``'s refinement laid out in ``capacity``

@@ -10,7 +10,6 @@ of different methods compare on one yardstick.
 from __future__ import annotations
 
 import dataclasses
-from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -18,6 +17,7 @@ import numpy as np
 
 from . import neighbors
 from .. import se3
+from ..kernel_store import stored_jit
 from ._icp import pad_points_host
 
 __all__ = ["RegistrationStats", "evaluate_registration"]
@@ -41,7 +41,7 @@ class RegistrationStats:
     grid_overflow: jax.Array
 
 
-@partial(jax.jit, static_argnames=("table_size", "cell_capacity"))
+@stored_jit(static_argnames=("table_size", "cell_capacity"))
 def _evaluate(source, source_count, target, target_count, T, distance, *, table_size, cell_capacity):
     grid = neighbors.build_grid(target, target_count, distance, table_size=table_size,
                                 cell_capacity=cell_capacity)

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from .. import morton
 from .._ops import quarter_octave_capacity
 from ..budget import check_allocation
+from ..kernel_store import stored_jit
 from ..map import OccupancyMap
 from ._bricks import BRICK_EDGE, BRICK_VOXELS, LOCAL_OFFSETS, KernelInputs, Plan
 from ._interp import KEY_MAX, blend
@@ -184,7 +185,7 @@ def _chunk_leaves(inp: KernelInputs, i, chunk: int):
     return jax.lax.cond(i * chunk < inp.n_bricks, compute, skip, i)
 
 
-@functools.partial(jax.jit, static_argnames=("chunk",), donate_argnums=(1,))
+@stored_jit(static_argnames=("chunk",), donate_argnums=(1,))
 def transform_kernel(inp: KernelInputs, bufs, offset, start, *, chunk):
     """Loop over chunks of destination bricks from chunk ``start``; append each chunk's
     brick-pruned leaves to ``bufs`` (``OutputLeaves``, donated) from row ``offset``.

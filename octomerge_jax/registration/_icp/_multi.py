@@ -17,6 +17,7 @@ import numpy as np
 
 from ... import se3
 from ..._ops import is_traced
+from ...kernel_store import stored_jit
 from .. import neighbors
 from ..status import Status
 from ._centred import centred, centroid, uncentre_result
@@ -113,8 +114,7 @@ def _last_stage(final, progress: Progress, merged, sequential: bool):
     return jax.vmap(f)(merged, progress)
 
 
-@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching",
-                                   "sequential"))
+@stored_jit(static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching", "sequential"))
 def multi_padded(source, source_count, target, target_count, hypotheses, dists, epsilon, final_epsilon,
                  min_inliers, basin_tolerance_m, *, max_iterations: int, cell_capacity: int,
                  table_sizes: tuple[int, ...], coarse_matching: str, sequential: bool = False) -> IcpMultiResult:

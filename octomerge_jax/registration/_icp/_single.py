@@ -11,6 +11,7 @@ import numpy as np
 
 from ... import se3
 from ..._ops import is_traced
+from ...kernel_store import stored_jit
 from ._centred import centred, uncentre_result
 from ._coarse import check_coarse_matching
 from ._host import as_argument, check_transform, prepare_points
@@ -21,8 +22,7 @@ from ._schedule import build_stage_grids, resolve_options, table_sizes as stage_
 __all__ = ["solve_padded", "icp_padded", "icp_padded_stack", "icp", "icp_with_path"]
 
 
-@partial(jax.jit, static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching",
-                                   "two_phase"))
+@stored_jit(static_argnames=("max_iterations", "cell_capacity", "table_sizes", "coarse_matching", "two_phase"))
 def solve_padded(source, source_count, target, target_count, T_target_source_init, dists, epsilon,
                  final_epsilon, min_inliers, *, max_iterations, cell_capacity, table_sizes,
                  coarse_matching, two_phase) -> IcpResult:

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ...kernel_store import stored_jit
 from ...map import OccupancyMap
 from ...se3 import check_rigid_transform
 from ..status import Status, usable_mask
@@ -173,7 +174,7 @@ def _solve(problem: AlignProblem, T_init, opts: _Options, maxiter: int, solver: 
                        restarted=restart)
 
 
-@partial(jax.jit, static_argnames=("maxiter", "solver"))
+@stored_jit(static_argnames=("maxiter", "solver"))
 def _solve_jit(problem, T_init, opts, *, maxiter, solver):
     return _solve(problem, T_init, opts, maxiter, solver)
 

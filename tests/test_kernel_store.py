@@ -1,0 +1,132 @@
+"""``kernel_store``: compiled kernels kept on disk and loaded in later processes without tracing,
+with results identical to ``jax.jit``'s; a bad entry costs a compile, never a result."""
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from octomerge_jax import kernel_store
+from octomerge_jax.kernel_store import stored_jit
+
+
+def solve_sorted(a, b, *, scale: int):
+    """LAPACK (a solve), a sort and an iota: the kinds of program whose loaded copies crashed or
+    missed functions before ``kernel_store`` prepared the backend and compiled fresh."""
+    x = jnp.linalg.solve(a @ a.T + jnp.eye(a.shape[0]), b)
+    return jnp.sort(x) * scale + jnp.arange(x.shape[0], dtype=x.dtype)
+
+
+STORED = stored_jit(solve_sorted, static_argnames=("scale",))
+A = np.random.default_rng(0).normal(size=(6, 6)).astype(np.float32)
+B = np.arange(6, dtype=np.float32)
+
+
+@pytest.fixture
+def store(tmp_path):
+    """A store of the test's own (the run's, tests/conftest.py, is put back after)."""
+    STORED._loaded.clear()  # programs this process already holds are not read or written again
+    run_store = kernel_store.store_dir()
+    kernel_store.open_store(tmp_path / "kernels")
+    yield tmp_path / "kernels"
+    kernel_store.close_store()
+    if run_store is not None:
+        kernel_store.open_store(run_store)
+
+
+@pytest.fixture
+def no_store():
+    run_store = kernel_store.store_dir()
+    kernel_store.close_store()
+    yield
+    if run_store is not None:
+        kernel_store.open_store(run_store)
+
+
+def test_without_a_store_it_is_jax_jit(no_store):
+    np.testing.assert_array_equal(STORED(A, B, scale=2), jax.jit(solve_sorted, static_argnames="scale")(A, B, scale=2))
+
+
+def test_a_call_stores_one_program_per_shape_and_static_value(store):
+    ref = jax.jit(solve_sorted, static_argnames="scale")
+    np.testing.assert_array_equal(STORED(A, B, scale=2), ref(A, B, scale=2))
+    np.testing.assert_array_equal(STORED(A, B, scale=2), ref(A, B, scale=2))
+    assert len(list(store.glob("solve_sorted-*.pkl"))) == 1
+    np.testing.assert_array_equal(STORED(A, B, scale=3), ref(A, B, scale=3))
+    np.testing.assert_array_equal(STORED(A[:4, :4], B[:4], scale=3), ref(A[:4, :4], B[:4], scale=3))
+    assert len(list(store.glob("solve_sorted-*.pkl"))) == 3
+
+
+def test_under_a_trace_it_is_the_plain_jit(store):
+    a, b = A[:5, :5], B[:5]
+    out = jax.vmap(lambda b: STORED(a, b, scale=2))(np.stack([b, b + 1]))
+    np.testing.assert_array_equal(out[1], STORED(a, b + 1, scale=2))
+    assert len(list(store.glob("*.pkl"))) == 1  # the direct call only
+
+
+def test_a_corrupt_entry_is_compiled_again(store):
+    a, b = A[:3, :3], B[:3]
+    expected = np.asarray(STORED(a, b, scale=5))
+    (entry,) = store.glob("solve_sorted-*.pkl")
+    entry.write_bytes(b"not a program")
+    STORED._loaded.clear()
+    np.testing.assert_array_equal(STORED(a, b, scale=5), expected)
+
+
+def test_dynamic_parameters_after_static_ones_are_refused():
+    def f(n, x):
+        return x * n
+
+    with pytest.raises(TypeError, match="must be positional and come before"):
+        stored_jit(f, static_argnames=("n",))
+
+
+PROCESS = textwrap.dedent("""
+    import json, sys
+    import jax, numpy as np
+    from octomerge_jax import kernel_store
+    sys.path.insert(0, {tests!r})
+    from test_kernel_store import STORED, A, B, solve_sorted
+    jax.config.update("jax_compilation_cache_dir", {xla!r})
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    events = []
+    jax.monitoring.register_event_listener(lambda e, **k: events.append(e))
+    if {use_store}:
+        kernel_store.open_store({store!r})
+        out = STORED(A, B, scale=2)
+    else:
+        out = jax.jit(solve_sorted, static_argnames="scale")(A, B, scale=2)
+    print(json.dumps({{"out": np.asarray(out).tolist(),
+                       "loads": events.count(kernel_store.LOAD_EVENT),
+                       "cache_hits": events.count("/jax/compilation_cache/cache_hits")}}))
+""")
+
+
+def _process(tmp_path, use_store: bool) -> dict:
+    code = PROCESS.format(tests=str(Path(__file__).parent), xla=str(tmp_path / "xla"),
+                          store=str(tmp_path / "kernels"), use_store=use_store)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_a_later_process_loads_the_program_and_gets_the_same_result(tmp_path):
+    # the plain program first, into JAX's persistent cache: the store must not copy it from
+    # there (an executable read from that cache serializes without its compiled functions)
+    plain = _process(tmp_path, use_store=False)
+    first = _process(tmp_path, use_store=True)
+    assert first["loads"] == 0 and first["cache_hits"] == 0
+    later = _process(tmp_path, use_store=True)
+    assert later["loads"] == 1
+    assert later["out"] == first["out"] == plain["out"]
+    (entry,) = (tmp_path / "kernels").glob("solve_sorted-*.pkl")
+    entry.write_bytes(b"not a program")
+    again = _process(tmp_path, use_store=True)
+    assert again["loads"] == 0 and again["out"] == plain["out"]
+    assert _process(tmp_path, use_store=True)["loads"] == 1  # the entry was written anew
