@@ -6,7 +6,7 @@ merge``). ``stored_jit`` is ``jax.jit`` for the few large entry kernels a merge 
 store is opened (``open_store``, done by the command line, never by importing the library) it
 keys each call on what decides the program without tracing it (the function, the static
 arguments, the dynamic arguments' tree, shapes and dtypes, the package's source, JAX's version,
-backend and settings) and loads the executable a previous process serialized
+backend and settings, the host CPU) and loads the executable a previous process serialized
 (``jax.experimental.serialize_executable``). With no store open it is exactly ``jax.jit``.
 docs/design.md, "Compile cache and warm-up"."""
 
@@ -17,6 +17,7 @@ import hashlib
 import inspect
 import os
 import pickle
+import platform
 import tempfile
 from pathlib import Path
 
@@ -69,6 +70,19 @@ def _package_source_digest() -> str:
     return h.hexdigest()
 
 
+def _host_cpu() -> str:
+    """The host CPU's model and instruction-set flags (Linux; else the platform's names): a
+    program compiled for one CPU's instructions is never loaded on another that lacks them
+    (a cache directory shared between machines)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            lines = [line for line in f if line.startswith(("model name", "flags", "Features", "CPU part"))]
+        info = "".join(sorted(set(lines)))
+    except OSError:
+        info = ""
+    return hashlib.sha256((info or f"{platform.machine()} {platform.processor()}").encode()).hexdigest()
+
+
 def _environment() -> str:
     """What besides the arguments decides a compiled program: versions, backend, settings."""
     if _STATE["environment"] is None:
@@ -78,7 +92,7 @@ def _environment() -> str:
         _STATE["environment"] = repr((
             _FORMAT, jax.__version__, jaxlib.__version__, device.platform, device.device_kind,
             device.client.platform_version, jax.device_count(), jax.config.jax_enable_x64,
-            jax.config.jax_default_matmul_precision, os.environ.get("XLA_FLAGS", ""),
+            jax.config.jax_default_matmul_precision, os.environ.get("XLA_FLAGS", ""), _host_cpu(),
             _package_source_digest()))
     return _STATE["environment"]
 
