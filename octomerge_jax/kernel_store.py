@@ -12,6 +12,7 @@ docs/design.md, "Compile cache and warm-up"."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import inspect
@@ -19,6 +20,7 @@ import os
 import pickle
 import platform
 import tempfile
+import time
 from pathlib import Path
 
 import jax
@@ -26,27 +28,64 @@ from jax.experimental import serialize_executable
 
 from ._ops import is_traced
 
-__all__ = ["LOAD_EVENT", "StoredJit", "stored_jit", "open_store", "close_store", "store_dir"]
+__all__ = ["DEFAULT_MAX_BYTES", "LOAD_EVENT", "StoredJit", "stored_jit", "open_store", "close_store", "store_dir",
+           "tidy_store"]
 
 LOAD_EVENT = "/octomerge_jax/kernel_store/loads"
 """``jax.monitoring`` event recorded for every program loaded from the store."""
+
+DEFAULT_MAX_BYTES = 2 << 30
+"""The store's default size bound [bytes] (2 GiB; a campus-size merge keeps ~5 MB)."""
 
 _STATE: dict = {"dir": None, "environment": None, "backend_ready": False}
 _FORMAT = 1
 
 
-def open_store(path: str | os.PathLike) -> Path | None:
+def open_store(path: str | os.PathLike, max_bytes: int = DEFAULT_MAX_BYTES) -> Path | None:
     """Keep compiled ``stored_jit`` kernels in directory ``path`` (created) for this process and
-    later ones. Returns the directory, or ``None`` when it cannot be created (the store stays
-    closed and kernels compile as with ``jax.jit``)."""
+    later ones. On opening, files a killed process left half-written are removed and, when the
+    entries take more than ``max_bytes``, the least recently used are removed down to three
+    quarters of it (``tidy_store``). Returns the directory, or ``None`` when it cannot be
+    created (the store stays closed and kernels compile as with ``jax.jit``)."""
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError:
         return None
+    tidy_store(path, max_bytes)
     _STATE["dir"] = path
     _STATE["environment"] = None
     return path
+
+
+def tidy_store(path: Path, max_bytes: int = DEFAULT_MAX_BYTES, stale_s: float = 3600.0) -> None:
+    """Remove the store's temporary files older than ``stale_s`` seconds, then, while its
+    entries take more than ``max_bytes``, the least recently used ones (by modification time,
+    which a load refreshes) down to three quarters of it. Files that vanish or cannot be
+    removed meanwhile (another process) are skipped."""
+    now = time.time()
+    entries = []
+    for item in path.iterdir():
+        try:
+            st = item.stat()
+            if item.name.startswith(".tmp-"):
+                if now - st.st_mtime > stale_s:
+                    item.unlink()
+            elif item.suffix == ".pkl":
+                entries.append((st.st_mtime, st.st_size, item))
+        except OSError:
+            continue
+    total = sum(size for _, size, _ in entries)
+    if total <= max_bytes:
+        return
+    for _, size, item in sorted(entries, key=lambda e: e[0]):
+        try:
+            item.unlink()
+        except OSError:
+            continue
+        total -= size
+        if total <= max_bytes * 3 // 4:
+            return
 
 
 def close_store() -> None:
@@ -207,6 +246,8 @@ class StoredJit:
             compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
         except Exception:  # noqa: BLE001 - a bad entry costs a compile, never the merge
             return None
+        with contextlib.suppress(OSError):
+            os.utime(self._path(directory, key))  # recently used: kept by tidy_store
         jax.monitoring.record_event(LOAD_EVENT)
         return compiled
 

@@ -130,3 +130,35 @@ def test_a_later_process_loads_the_program_and_gets_the_same_result(tmp_path):
     again = _process(tmp_path, use_store=True)
     assert again["loads"] == 0 and again["out"] == plain["out"]
     assert _process(tmp_path, use_store=True)["loads"] == 1  # the entry was written anew
+
+
+def test_opening_removes_stale_temporaries_and_the_least_recently_used(tmp_path):
+    import os
+    import time
+
+    now = time.time()
+    for i, age in enumerate((50, 40, 30, 20, 10)):  # 5 entries of 100 bytes, entry-0 the oldest
+        entry = tmp_path / f"k-{i}.pkl"
+        entry.write_bytes(b"x" * 100)
+        os.utime(entry, (now - age, now - age))
+    fresh, stale = tmp_path / ".tmp-fresh.pkl", tmp_path / ".tmp-stale.pkl"
+    fresh.write_bytes(b"partial")
+    stale.write_bytes(b"partial")
+    os.utime(stale, (now - 7200, now - 7200))
+    kernel_store.tidy_store(tmp_path, max_bytes=500)
+    assert fresh.exists() and not stale.exists()
+    assert len(list(tmp_path.glob("k-*.pkl"))) == 5  # within the bound: nothing removed
+    kernel_store.tidy_store(tmp_path, max_bytes=400)  # over: down to 300 bytes, oldest first
+    assert sorted(p.name for p in tmp_path.glob("k-*.pkl")) == ["k-2.pkl", "k-3.pkl", "k-4.pkl"]
+
+
+def test_a_load_marks_the_entry_recently_used(store):
+    import os
+
+    a, b = A[:2, :2], B[:2]
+    expected = np.asarray(STORED(a, b, scale=7))
+    (entry,) = store.glob("solve_sorted-*.pkl")
+    os.utime(entry, (0, 0))
+    STORED._loaded.clear()
+    np.testing.assert_array_equal(STORED(a, b, scale=7), expected)
+    assert entry.stat().st_mtime > 0
