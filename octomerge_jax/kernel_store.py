@@ -42,12 +42,12 @@ _FORMAT = 1
 
 
 def open_store(path: str | os.PathLike, max_bytes: int = DEFAULT_MAX_BYTES) -> Path | None:
-    """Keep compiled ``stored_jit`` kernels in directory ``path`` (created) for this process and
-    later ones. On opening, files a killed process left half-written are removed and, when the
-    entries take more than ``max_bytes``, the least recently used are removed down to three
-    quarters of it (``tidy_store``). Returns the directory, or ``None`` when it cannot be
+    """Keep compiled ``stored_jit`` kernels in directory ``path`` (``~`` expanded; created) for
+    this process and later ones. On opening, files a killed process left half-written are
+    removed and, when the entries take more than ``max_bytes``, the least recently used are
+    removed down to three quarters of it (``tidy_store``). Returns the directory, or ``None`` when it cannot be
     created (the store stays closed and kernels compile as with ``jax.jit``)."""
-    path = Path(path)
+    path = Path(path).expanduser()
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError:

@@ -162,3 +162,16 @@ def test_a_load_marks_the_entry_recently_used(store):
     STORED._loaded.clear()
     np.testing.assert_array_equal(STORED(a, b, scale=7), expected)
     assert entry.stat().st_mtime > 0
+
+
+def test_the_readme_path_opens_under_home(tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    run_store = kernel_store.store_dir()
+    try:
+        opened = kernel_store.open_store("~/.cache/octomerge_jax/xla/kernels")
+        assert opened == tmp_path / ".cache" / "octomerge_jax" / "xla" / "kernels"
+        assert kernel_store.store_dir().is_dir()
+    finally:
+        kernel_store.close_store()
+        if run_store is not None:
+            kernel_store.open_store(run_store)
