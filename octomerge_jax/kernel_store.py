@@ -20,6 +20,7 @@ import os
 import pickle
 import platform
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -37,6 +38,7 @@ LOAD_EVENT = "/octomerge_jax/kernel_store/loads"
 DEFAULT_MAX_BYTES = 2 << 30
 """The store's default size bound [bytes] (2 GiB; a campus-size merge keeps ~5 MB)."""
 
+_COMPILE_LOCK = threading.Lock()
 _STATE: dict = {"dir": None, "environment": None, "backend_ready": False}
 _FORMAT = 1
 
@@ -158,13 +160,15 @@ def _compile_fresh(lowered):
     (the copy then fails with ``NOT_FOUND: Function ... not found``), so the store keeps only
     fresh compiles: ``lowered`` comes from the ``stored_``-named twin of the kernel (a program
     of its own name, never found in that cache), and the cache's write threshold is raised for
-    the one compile so it is not written there either."""
-    threshold = jax.config.jax_persistent_cache_min_compile_time_secs
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", float("inf"))
-    try:
-        return lowered.compile()
-    finally:
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", threshold)
+    the one compile so it is not written there either (one such compile at a time, so threads
+    never leave the threshold raised)."""
+    with _COMPILE_LOCK:
+        threshold = jax.config.jax_persistent_cache_min_compile_time_secs
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", float("inf"))
+        try:
+            return lowered.compile()
+        finally:
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", threshold)
 
 
 def _renamed(fun):

@@ -81,7 +81,7 @@ def run(args) -> int:
     _check(args)
     import jax
 
-    from ..kernel_store import LOAD_EVENT
+    from ..kernel_store import LOAD_EVENT, store_dir
     from ..pipeline import MergeConfig, MergeError, merge
 
     compiled, loaded = Counter(), Counter()
@@ -92,8 +92,10 @@ def run(args) -> int:
             compiled["seconds"] += secs
 
     def on_event(event, **kw):
-        if event in ("/jax/compilation_cache/cache_hits", LOAD_EVENT):
+        if event == "/jax/compilation_cache/cache_hits":  # also counted as a backend compile
             loaded["programs"] += 1
+        elif event == LOAD_EVENT:  # loaded from the kernel store, no backend compile
+            loaded["stored"] += 1
 
     jax.monitoring.register_event_duration_secs_listener(on_compile)
     jax.monitoring.register_event_listener(on_event)
@@ -111,8 +113,11 @@ def run(args) -> int:
                 raise CliError(f"{label}: {err}") from err
             n = compiled["programs"] - before_c.get("programs", 0)
             hits = loaded["programs"] - before_l.get("programs", 0)
+            stored = loaded["stored"] - before_l.get("stored", 0)
             print(f"{label} ({m1.num_leaves:,} + {m2.num_leaves:,} leaves), refine {refine}: "
-                  f"{time.perf_counter() - t0:.1f} s, {n - hits} programs compiled, {hits} loaded")
+                  f"{time.perf_counter() - t0:.1f} s, {n - hits} programs compiled, {hits + stored} loaded")
     if cache:
         print(f"cache: {cache}")
+    if store_dir() is not None:
+        print(f"kernel store: {store_dir()}")
     return 0
