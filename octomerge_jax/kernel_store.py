@@ -19,14 +19,13 @@ import inspect
 import os
 import pickle
 import platform
-import tempfile
 import threading
-import time
 from pathlib import Path
 
 import jax
 from jax.experimental import serialize_executable
 
+from ._fileutil import atomic_output, remove_stale_temp_files
 from ._ops import is_traced
 
 __all__ = ["DEFAULT_MAX_BYTES", "LOAD_EVENT", "StoredJit", "stored_jit", "open_store", "close_store", "store_dir",
@@ -47,8 +46,8 @@ def open_store(path: str | os.PathLike, max_bytes: int = DEFAULT_MAX_BYTES) -> P
     """Keep compiled ``stored_jit`` kernels in directory ``path`` (``~`` expanded; created) for
     this process and later ones. On opening, files a killed process left half-written are
     removed and, when the entries take more than ``max_bytes``, the least recently used are
-    removed down to three quarters of it (``tidy_store``). Returns the directory, or ``None`` when it cannot be
-    created (the store stays closed and kernels compile as with ``jax.jit``)."""
+    removed down to three quarters of it (``tidy_store``). Returns the directory, or ``None``
+    when it cannot be created (the store stays closed and kernels compile as with ``jax.jit``)."""
     path = Path(path).expanduser()
     try:
         path.mkdir(parents=True, exist_ok=True)
@@ -60,23 +59,21 @@ def open_store(path: str | os.PathLike, max_bytes: int = DEFAULT_MAX_BYTES) -> P
     return path
 
 
-def tidy_store(path: Path, max_bytes: int = DEFAULT_MAX_BYTES, stale_s: float = 3600.0) -> None:
-    """Remove the store's temporary files older than ``stale_s`` seconds, then, while its
-    entries take more than ``max_bytes``, the least recently used ones (by modification time,
-    which a load refreshes) down to three quarters of it. Files that vanish or cannot be
-    removed meanwhile (another process) are skipped."""
-    now = time.time()
+def tidy_store(path: Path, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
+    """Remove the temporary files of writers that are gone (``remove_stale_temp_files``), then,
+    while the store's entries take more than ``max_bytes``, the least recently used ones (by
+    modification time, which a load refreshes) down to three quarters of it. Files that vanish
+    or cannot be removed meanwhile (another process) are skipped."""
+    remove_stale_temp_files(path)
     entries = []
-    for item in path.iterdir():
+    for item in path.glob("*.pkl"):
+        if item.name.startswith("."):  # a temporary of a running writer
+            continue
         try:
             st = item.stat()
-            if item.name.startswith(".tmp-"):
-                if now - st.st_mtime > stale_s:
-                    item.unlink()
-            elif item.suffix == ".pkl":
-                entries.append((st.st_mtime, st.st_size, item))
         except OSError:
             continue
+        entries.append((st.st_mtime, st.st_size, item))
     total = sum(size for _, size, _ in entries)
     if total <= max_bytes:
         return
@@ -256,18 +253,13 @@ class StoredJit:
         return compiled
 
     def _save(self, directory: Path, key: str, compiled) -> None:
-        """Write ``compiled`` under ``key`` atomically; a program that cannot be serialized or a
-        store that cannot be written is skipped (the next process compiles it again)."""
+        """Write ``compiled`` under ``key`` (``atomic_output``); a program that cannot be
+        serialized or a store that cannot be written is skipped (the next process compiles it
+        again)."""
         try:
             blob = pickle.dumps(serialize_executable.serialize(compiled))
-            fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=".pkl")
-            try:
-                with os.fdopen(fd, "wb") as f:
-                    f.write(blob)
-                os.replace(tmp, self._path(directory, key))
-            except BaseException:
-                Path(tmp).unlink(missing_ok=True)
-                raise
+            with atomic_output(self._path(directory, key), suffix=".pkl") as tmp:
+                tmp.write_bytes(blob)
         except Exception:  # noqa: BLE001 - storing is an optimisation
             return
 

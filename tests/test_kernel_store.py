@@ -2,9 +2,11 @@
 with results identical to ``jax.jit``'s; a bad entry costs a compile, never a result."""
 
 import json
+import os
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import jax
@@ -133,18 +135,17 @@ def test_a_later_process_loads_the_program_and_gets_the_same_result(tmp_path):
 
 
 def test_opening_removes_stale_temporaries_and_the_least_recently_used(tmp_path):
-    import os
-    import time
-
     now = time.time()
     for i, age in enumerate((50, 40, 30, 20, 10)):  # 5 entries of 100 bytes, entry-0 the oldest
         entry = tmp_path / f"k-{i}.pkl"
         entry.write_bytes(b"x" * 100)
         os.utime(entry, (now - age, now - age))
-    fresh, stale = tmp_path / ".tmp-fresh.pkl", tmp_path / ".tmp-stale.pkl"
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    # temporaries named as atomic_output names them: of this running process, and of one that is gone
+    fresh = tmp_path / f".k-5.pkl.omj{os.getpid()}-abcd1234.pkl"
+    stale = tmp_path / f".k-6.pkl.omj{int(gone.stdout)}-abcd1234.pkl"
     fresh.write_bytes(b"partial")
     stale.write_bytes(b"partial")
-    os.utime(stale, (now - 7200, now - 7200))
     kernel_store.tidy_store(tmp_path, max_bytes=500)
     assert fresh.exists() and not stale.exists()
     assert len(list(tmp_path.glob("k-*.pkl"))) == 5  # within the bound: nothing removed
@@ -153,8 +154,6 @@ def test_opening_removes_stale_temporaries_and_the_least_recently_used(tmp_path)
 
 
 def test_a_load_marks_the_entry_recently_used(store):
-    import os
-
     a, b = A[:2, :2], B[:2]
     expected = np.asarray(STORED(a, b, scale=7))
     (entry,) = store.glob("solve_sorted-*.pkl")
