@@ -187,7 +187,8 @@ def test_cli_exit_codes_and_force(tmp_path, room):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("scene", [
-    # open (issue 36): the campus at 0.2 m is called "no_overlap"
+    # the lab at 0.1 m: a placement beside map 1 sharing a wall is pinned by 0.2-0.3 coarse cells:
+    # "ambiguous". Open (issue 36): the campus at 0.2 m is called "no_overlap"
     "lab",
     "office",
     pytest.param("campus", marks=pytest.mark.xfail(strict=False, reason="campus at 0.2 m called no_overlap"))])
@@ -206,33 +207,6 @@ def test_simulated_pairs_from_random_yaw(scene):
         assert r.info["verdict"] != "ok" or _right(r.T_1_2, T_true, trans=0.25), (scene, r.info["global"])
         if scene != "lab":  # the lab's two runs share little: it may be ambiguous, never wrong
             assert r.info["verdict"] == "ok"
-
-
-def test_free_cell_volumes_match_the_voxels_they_cover():
-    """Free volume per coarse cell, from a pruned map (free leaves up to 1.6 m), equals the
-    brute-force sum over the finest free voxels; a mostly free cell is free, a grazed one not."""
-    from octomerge_jax.registration.global_search import MOSTLY_FREE, free_cell_volumes
-
-    res = 0.1
-    g = np.arange(0, 16) * res + res / 2
-    block = np.stack(np.meshgrid(g, g, g[:8], indexing="ij"), -1).reshape(-1, 3)
-    stray = np.array([[2.05, 0.05, 0.05], [2.35, 0.15, 0.05], [-0.45, 0.75, 0.35]])
-    m = from_voxels(np.concatenate([block, stray]), -1.5, res)
-    assert m.leaves().sizes.max() >= 0.8 - 1e-9  # pruned: leaves larger than the coarse cells
-    for v in (0.3, 0.7):
-        centres, vol = free_cell_volumes(m, v)
-        keys = np.floor(np.concatenate([block, stray]) / v).astype(np.int64)
-        want = {}
-        for k in map(tuple, keys):
-            want[k] = want.get(k, 0.0) + res ** 3
-        got = {tuple(k): x for k, x in zip(np.floor(centres / v).astype(np.int64), vol)}
-        assert got.keys() == want.keys()
-        np.testing.assert_allclose([got[k] for k in want], list(want.values()), rtol=1e-9)
-    centres, vol = free_cell_volumes(m, 0.3)
-    s = cell_sets(np.zeros((0, 3)), centres, 0.3, free_volume=vol)
-    keys = set(map(tuple, ((s.free_codes[:, None] >> (np.arange(3)[::-1] * 21)) & ((1 << 21) - 1)) - (1 << 20)))
-    assert (0, 0, 0) in keys and (6, 0, 0) not in keys  # full; one voxel of 27 (< MOSTLY_FREE)
-    assert MOSTLY_FREE > 1 / 27
 
 
 def test_horizontal_pinning_tells_a_room_from_a_corridor(room):

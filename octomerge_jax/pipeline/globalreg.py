@@ -36,28 +36,24 @@ from .. import se3
 from ..map import OccupancyMap, bucket_capacity
 from ..registration import Status
 from ..registration.features import coarse_cloud, coarse_voxel_size, neighbor_pairs, normals
-from ..registration.global_search import (cell_sets, consistency_score, distinct_poses, free_cell_volumes, free_points,
-                                          horizontal_pinning, level_rotation, net_agreement, nudge_poses, pose_distance,
-                                          rotation_z, translation_candidates, yaw_candidates)
+from ..registration.global_search import (cell_sets, consistency_score, distinct_poses, free_points,
+                                                  horizontal_pinning, level_rotation, net_agreement, nudge_poses, pose_distance, rotation_z,
+                                                  translation_candidates, yaw_candidates)
 from .clouds import icp_info, icp_kwargs, occupied_clouds, overlap_margin, select_overlap
 from .config import MergeConfig
 from .report import MergeError, Registration
 from .timings import Timings
 
-__all__ = ["AMBIGUOUS_GAP", "CONFLICT_TOLERANCE_VOXELS", "CONFLICT_WEIGHT", "MAX_CONFLICT_SHARE", "MIN_CONFIDENCE",
-           "MIN_EXPLAINED", "MIN_LOCAL_FITNESS", "MIN_PINNING_CELLS", "MIN_SHARED", "MIN_SHARED_OK",
-           "SCREEN_CONFLICT_WEIGHT", "explained_fraction", "judge_local", "register_global"]
+__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MIN_CONFIDENCE", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS",
+           "MIN_PINNING_CELLS", "MIN_SHARED", "MIN_SHARED_OK", "explained_fraction",
+           "judge_local", "register_global"]
 
 #: a distinct second pose whose net agreement is within this share of the best's: "ambiguous"
 AMBIGUOUS_GAP = 0.1
 #: the best pose explains less than this share of the smaller map's occupied points: "no_overlap"
 MIN_EXPLAINED = 0.12
 #: a coarse cell that puts surface into the other map's free space outweighs this many that agree
-CONFLICT_WEIGHT = 6.0
-#: a surface conflicts with free cells only this many of the map's voxels deep inside them
-CONFLICT_TOLERANCE_VOXELS = 1.0
-#: CONFLICT_WEIGHT of the screening of the unrefined poses
-SCREEN_CONFLICT_WEIGHT = 3.0
+CONFLICT_WEIGHT = 3.0
 #: coarse cells in agreement less CONFLICT_WEIGHT x those in conflict, over the smaller map's cells, below: "no_overlap"
 MIN_SHARED = 0.1
 #: below this confidence a result is not "ok": little overlap leaves other placements about as good
@@ -65,11 +61,8 @@ MIN_CONFIDENCE = 0.3
 #: net shared share (as MIN_SHARED) below which a result is at most "ambiguous": a placement beside map 1
 #: sharing a wall conflicts with nothing and explains about as much
 MIN_SHARED_OK = 0.2
-#: a best pose whose coarse cells in conflict exceed this share of those in agreement is at most "ambiguous":
-#: at the right pose only noise and moving objects conflict
-MAX_CONFLICT_SHARE = 0.075
 #: the surfaces both maps agree on at the best pose pin it horizontally by fewer coarse cells than this
-#: (``horizontal_pinning``): at most "ambiguous", it may slide (a corridor, a shared strip of floor and wall)
+#: (``horizontal_pinning``): at most "ambiguous", it may slide (a corridor, maps side by side sharing a wall)
 MIN_PINNING_CELLS = 8.0
 #: a local ICP result whose fitness (inliers over map 2's commonly mapped points) is below: "failed"
 MIN_LOCAL_FITNESS = 0.3
@@ -101,14 +94,6 @@ class _Refined(NamedTuple):
     result: object  # IcpResult or None (too little overlap to run ICP)
     overlap: tuple  # (q1 (k1, 3), q2 (k2, 3)) float32 commonly mapped subsets [m]
     index: int  # row of the coarse candidates
-
-
-def _cells(points, m: OccupancyMap, voxel: float):
-    """``CellSets`` of a map's occupied ``points (n, 3)`` [m] and its mostly free cells, with a
-    tolerance of ``CONFLICT_TOLERANCE_VOXELS`` of the map's voxels."""
-    centres, volumes = free_cell_volumes(m, voxel)
-    return cell_sets(points, centres, voxel, free_volume=volumes,
-                     tolerance=CONFLICT_TOLERANCE_VOXELS * float(m.resolution))
 
 
 def _pad(q, cap: int) -> np.ndarray:
@@ -190,11 +175,12 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         return _nothing(p1, p2, T_1_2_init, counts, info_g)
     extent = max(float(np.linalg.norm(np.ptp(c2.points, axis=0))) / 2.0, v)
     with timings.stage("verify"):
-        s1, s2 = _cells(p1, m1, v), _cells(p2, m2, v)
-        screened = np.array([net_agreement(s1, s2, T, SCREEN_CONFLICT_WEIGHT) for T in T_all], np.float64)
+        s1 = cell_sets(p1, free_points(m1, v), v)
+        s2 = cell_sets(p2, free_points(m2, v), v)
+        screened = np.array([net_agreement(s1, s2, T, CONFLICT_WEIGHT) for T in T_all], np.float64)
         picked = list(distinct_poses(T_all, screened, extent, 2.0 * v, _NUM_REFINED))
         # and the best after half-cell nudges, if another: a pose a third of a cell off ranks low
-        nudged = nudge_poses(s1, s2, T_all, v / 2, SCREEN_CONFLICT_WEIGHT)[1]
+        nudged = nudge_poses(s1, s2, T_all, v / 2, CONFLICT_WEIGHT)[1]
         i_nudged = int(np.argmax(nudged))
         if all(pose_distance(T_all[i_nudged], T_all[i], extent) >= 2.0 * v for i in picked):
             picked.append(i_nudged)
@@ -215,14 +201,14 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         n_in, explained = explained_fraction(p1, p2, best.T_1_2, 2.0 * resolution, config)
         pinning = horizontal_pinning(s1, s2, best.T_1_2, _NORMAL_RADIUS * v)
     usable = best.result is not None and Status(int(best.result.status)).usable
-    confidence = _confidence(gap, shared, conflict / max(agree, 1), pinning)
+    confidence = _confidence(gap, shared, pinning)
     if shared < MIN_SHARED or explained < MIN_EXPLAINED:
         verdict = "no_overlap"
     elif not usable:
         verdict = "failed"
     else:
         trusted = (gap >= AMBIGUOUS_GAP and confidence >= MIN_CONFIDENCE and shared >= MIN_SHARED_OK
-                   and conflict <= MAX_CONFLICT_SHARE * agree and pinning >= MIN_PINNING_CELLS)
+                   and pinning >= MIN_PINNING_CELLS)
         verdict = "ok" if trusted else "ambiguous"
     info_g.update(cells=[int(s1.occupied.codes.shape[0]), int(s2.occupied.codes.shape[0])],
                   screened=[round(float(x), 1) for x in screened[picked]], agree=agree, conflict=conflict,
@@ -240,17 +226,14 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
                         candidates=candidates)
 
 
-def _confidence(gap: float, shared: float, conflict_share: float, pinning: float) -> float:
-    """In [0, 1]: the product of the margin over the second-best distinct pose (saturating at
-    4x the ambiguity gap), how far the net shared share clears its no-overlap bound
-    (saturating at 3x), how far the conflicts stay under their bound (1 up to half of
-    ``MAX_CONFLICT_SHARE``, 0 at it) and how firmly the pose is pinned (0 at
-    ``MIN_PINNING_CELLS``, 1 from twice it)."""
+def _confidence(gap: float, shared: float, pinning: float) -> float:
+    """In [0, 1]: the margin over the second-best distinct pose (saturating at 4x the
+    ambiguity gap) times how far the net shared share clears its no-overlap bound (saturating
+    at 3x) times how firmly the pose is pinned (0 at ``MIN_PINNING_CELLS``, 1 from twice it)."""
     margin = np.clip(gap / (4.0 * AMBIGUOUS_GAP), 0.0, 1.0)
     share = np.clip((shared - MIN_SHARED) / (2.0 * MIN_SHARED), 0.0, 1.0)
-    consistent = np.clip(2.0 * (1.0 - conflict_share / MAX_CONFLICT_SHARE), 0.0, 1.0)
     pinned = np.clip(pinning / MIN_PINNING_CELLS - 1.0, 0.0, 1.0)
-    return float(margin * share * consistent * pinned)
+    return float(margin * share * pinned)
 
 
 def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timings: Timings) -> _Refined:
@@ -308,7 +291,8 @@ def judge_local(m1: OccupancyMap, m2: OccupancyMap, clouds, registration: Regist
     p1, p2 = clouds
     v = coarse_voxel_size(lambda v: 0, m1.resolution)
     with timings.stage("verify"):
-        agree, conflict = consistency_score(_cells(p1, m1, v), _cells(p2, m2, v), registration.T_1_2)
+        agree, conflict = consistency_score(cell_sets(p1, free_points(m1, v), v), cell_sets(p2, free_points(m2, v), v),
+                                            registration.T_1_2)
     fitness = float(info.get("fitness", 0.0))
     bad = fitness < MIN_LOCAL_FITNESS or agree - CONFLICT_WEIGHT * conflict <= 0
     info = {**info, "verdict": "failed" if bad else "ok",

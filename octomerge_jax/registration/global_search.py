@@ -29,14 +29,10 @@ import numpy as np
 from ..map import OccupancyMap
 from .features import CoarseCloud, cell_codes, coarse_cloud, neighbor_pairs, normals
 
-__all__ = ["MOSTLY_FREE", "CellSets", "cell_sets", "consistency_score", "distinct_poses", "free_cell_volumes",
-           "free_points", "horizontal_pinning", "level_rotation", "net_agreement", "nudge_poses", "pose_distance", "rotation_z",
-           "translation_candidates", "yaw_candidates"]
+__all__ = ["CellSets", "cell_sets", "consistency_score", "distinct_poses", "free_points", "horizontal_pinning",
+           "level_rotation", "net_agreement", "nudge_poses", "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates"]
 
 _YAW_BINS = 180  # over [0, pi): 1 degree
-
-#: a coarse cell is free when at least this share of its volume lies in the map's free leaves
-MOSTLY_FREE = 0.5
 
 
 def rotation_z(yaw_rad: float) -> np.ndarray:
@@ -184,65 +180,14 @@ class CellSets(NamedTuple):
 
     occupied: CoarseCloud  # one point per occupied cell (centroids, sorted codes)
     free_codes: np.ndarray  # (f,) int64 sorted codes of free cells that hold no occupied point
-    tolerance: float = 0.0  # [m] a point conflicts only when it lies this deep (vertically) inside free cells
 
 
-def free_cell_volumes(m: OccupancyMap, voxel: float, max_cells: int = 8_000_000) -> tuple[np.ndarray, np.ndarray]:
-    """The free volume of the map per cell of a grid of edge ``voxel`` [m]: ``(centres (k, 3)
-    float64 [m], volumes (k,) float64 [m^3])``, one row per cell that a free leaf (log-odds
-    below the occupancy threshold) reaches. A leaf larger than half a cell is split exactly
-    among the cells it overlaps; a smaller one counts whole in the cell of its centre. Raises
-    ``ValueError`` when more than ``max_cells`` leaf-cell overlaps would be formed."""
-    L = m.leaves()
-    free = L.log_odds < m.params.occupancy_threshold_log_odds
-    centers, sizes = L.centers[free], L.sizes[free]
-    keys, vols = [], []
-    for size in np.unique(sizes):
-        c = centers[sizes == size]
-        if size <= voxel / 2:
-            keys.append(np.floor(c / voxel).astype(np.int64))
-            vols.append(np.full(c.shape[0], float(size) ** 3))
-            continue
-        n = int(np.floor(size / voxel)) + 2  # cells a leaf can reach along one axis
-        if c.shape[0] * n ** 3 > max_cells:
-            raise ValueError(f"free space of {c.shape[0] * n ** 3} leaf-cell overlaps of {voxel:g} m "
-                             f"exceeds {max_cells}")
-        lo = c - size / 2
-        idx = np.floor(lo / voxel).astype(np.int64)[:, None, :] + np.arange(n)[None, :, None]  # (k, n, 3)
-        length = np.clip(np.minimum(lo[:, None, :] + size, (idx + 1) * voxel) - np.maximum(lo[:, None, :], idx * voxel),
-                         0.0, None)
-        vol = length[:, :, None, None, 0] * length[:, None, :, None, 1] * length[:, None, None, :, 2]  # (k, n, n, n)
-        grid = np.stack(np.meshgrid(*(np.arange(n),) * 3, indexing="ij"), -1).reshape(-1, 3)
-        k = np.stack([idx[:, grid[:, a], a] for a in range(3)], -1).reshape(-1, 3)  # (k n^3, 3)
-        vol = vol.reshape(-1)
-        keys.append(k[vol > 0])
-        vols.append(vol[vol > 0])
-    if not keys:
-        return np.zeros((0, 3)), np.zeros(0)
-    keys, vols = np.concatenate(keys), np.concatenate(vols)
-    codes, first, inverse = np.unique(cell_codes(keys), return_index=True, return_inverse=True)
-    return (keys[first] + 0.5) * voxel, np.bincount(inverse.reshape(-1), weights=vols, minlength=codes.shape[0])
-
-
-def cell_sets(points, free, voxel: float, free_volume=None, tolerance: float = 0.0) -> CellSets:
-    """``CellSets`` of occupied ``points (n, 3)`` and free-space points ``free (f, 3)`` [m] on a
-    grid of ``voxel`` [m]. With ``free_volume (f,)`` [m^3] (``free_cell_volumes``) a cell is
-    free when the volumes of its free points add up to ``MOSTLY_FREE`` of it: the rays that
-    graze a surface carve a few voxels of the cells beside it, which then do not count as
-    free; without, a cell holding any free point is (``free_points``). ``tolerance`` [m]: the
-    other map's points conflict with these free cells only when moved by it up or down they
-    stay in free cells: flat ground that one map has in the voxel layer above a cell's face and
-    the other in the layer below is no conflict."""
+def cell_sets(points, free, voxel: float) -> CellSets:
+    """``CellSets`` of occupied ``points (n, 3)`` and free-space points ``free (f, 3)`` [m]
+    (``free_points``) on a grid of ``voxel`` [m]."""
     occ = coarse_cloud(points, voxel)
-    codes = cell_codes(np.floor(np.asarray(free, np.float64) / voxel).astype(np.int64))
-    if free_volume is None:
-        codes = np.unique(codes)
-    else:
-        codes, inverse = np.unique(codes, return_inverse=True)
-        volume = np.bincount(inverse.reshape(-1), weights=np.asarray(free_volume, np.float64),
-                             minlength=codes.shape[0])
-        codes = codes[volume >= MOSTLY_FREE * float(voxel) ** 3]
-    return CellSets(occ, codes[~np.isin(codes, occ.codes)], float(tolerance))
+    codes = np.unique(cell_codes(np.floor(np.asarray(free, np.float64) / voxel).astype(np.int64)))
+    return CellSets(occ, codes[~np.isin(codes, occ.codes)])
 
 
 def net_agreement(s1: CellSets, s2: CellSets, T_1_2, conflict_weight: float) -> float:
@@ -296,21 +241,13 @@ def consistency_score(s1: CellSets, s2: CellSets, T_1_2) -> tuple[int, int]:
     T = np.asarray(T_1_2, np.float64)
     v = s1.occupied.voxel
     q = s2.occupied.points @ T[:3, :3].T + T[:3, 3]
-    agree = int(_member(s1.occupied.codes, cell_codes(np.floor(q / v).astype(np.int64))).sum())
+    c = cell_codes(np.floor(q / v).astype(np.int64))
+    agree = int(_member(s1.occupied.codes, c).sum())
+    conflict = int(_member(s1.free_codes, c).sum())
     Ti = np.linalg.inv(T)
     r = s1.occupied.points @ Ti[:3, :3].T + Ti[:3, 3]
-    return agree, int(_in_free(s1, q).sum() + _in_free(s2, r).sum())
-
-
-def _in_free(s: CellSets, points) -> np.ndarray:
-    """``(n,)`` bool: ``points (n, 3)`` [m] in ``s``'s free cells, also when moved up and down
-    by its tolerance."""
-    v = s.occupied.voxel
-    inside = _member(s.free_codes, cell_codes(np.floor(points / v).astype(np.int64)))
-    if s.tolerance > 0:
-        for step in ((0.0, 0.0, s.tolerance), (0.0, 0.0, -s.tolerance)):
-            inside &= _member(s.free_codes, cell_codes(np.floor((points + step) / v).astype(np.int64)))
-    return inside
+    conflict += int(_member(s2.free_codes, cell_codes(np.floor(r / v).astype(np.int64))).sum())
+    return agree, conflict
 
 
 def horizontal_pinning(s1: CellSets, s2: CellSets, T_1_2, radius: float) -> float:
@@ -320,8 +257,8 @@ def horizontal_pinning(s1: CellSets, s2: CellSets, T_1_2, radius: float) -> floa
     surface normal (``normals`` over neighbours within ``radius`` [m]). Wall cells facing a
     direction count up to one each; floors and ceilings nothing. Near zero when the shared
     surfaces leave a horizontal direction free: a corridor's parallel walls, or a strip of
-    floor and one wall shared by maps that are not of one place (Zhang, Kaess and Singh, "On
-    degeneracy of optimization-based state estimation problems", ICRA 2016, the same test on
+    floor and one wall shared by maps placed side by side (Zhang, Kaess and Singh, "On
+    degeneracy of optimization-based state estimation problems", ICRA 2016: the same test on
     the constraints' normals)."""
     c1 = s1.occupied
     if c1.codes.shape[0] == 0 or s2.occupied.codes.shape[0] == 0:
