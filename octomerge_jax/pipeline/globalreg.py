@@ -14,9 +14,11 @@ guess is given): ``register_global``; and the verdict on a local ICP result, ``j
 
 Verdict (``Registration.info["verdict"]``, the merge's ``MergeReport.status``): ``"ok"``;
 ``"ambiguous"`` when a distinct second pose agrees nearly as well (symmetric rooms,
-corridors), the confidence is below ``MIN_CONFIDENCE`` or the net shared share below
+corridors), the confidence is below ``MIN_CONFIDENCE``, the net shared share below
 ``MIN_SHARED_OK`` (so little overlap that another placement, e.g. beside map 1 sharing a wall,
-is about as consistent); ``"no_overlap"`` when the best pose explains too little of the smaller map;
+is about as consistent) or the surfaces both maps agree on pin the pose horizontally by fewer
+than ``MIN_PINNING_CELLS`` (``horizontal_pinning``: it may slide along them); ``"no_overlap"``
+when the best pose explains too little of the smaller map;
 ``"failed"`` when its ICP did not end usable. Maps are assumed gravity-aligned to within a
 few degrees (``registration.global_search``). The thresholds are calibrated on the benchmark
 grid (``benchmarks/bench_global.py``); see
@@ -152,7 +154,7 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     Returns a ``Registration``: ``T_1_2`` the best pose after ICP (rigid), ``info`` ICP's
     figures there plus ``verdict`` (``"ok"``, ``"ambiguous"``, ``"no_overlap"``,
     ``"failed"``: the merge's status) and ``global`` (coarse voxel, counts, map losses,
-    the gap to the second-best distinct pose), ``confidence`` in [0, 1], ``candidates``
+    the gap to the second-best distinct pose, the horizontal ``pinning``), ``confidence`` in [0, 1], ``candidates``
     (``{"T_1_2": 4x4 list, "score": -map loss, "agreement", "explained"}``, best first).
     Raises ``MergeError("empty")`` when a map has fewer than ``min_overlap_points`` occupied
     voxels. Method: ``registration.global_search`` (orientation histograms and correlation,
