@@ -38,9 +38,9 @@ from .. import se3
 from ..map import OccupancyMap, bucket_capacity
 from ..registration import Status
 from ..registration.features import coarse_cloud, coarse_voxel_size, neighbor_pairs, normals
-from ..registration.global_search import (cell_sets, consistency_score, distinct_poses, free_points,
-                                                  horizontal_pinning, level_rotation, net_agreement, nudge_poses, pose_distance, rotation_z,
-                                                  translation_candidates, yaw_candidates)
+from ..registration.global_search import (cell_sets, consistency_score, distinct_poses, free_points, horizontal_pinning,
+                                          level_rotation, net_agreement, nudge_poses, pose_distance, rotation_z,
+                                          translation_candidates, yaw_candidates)
 from .clouds import icp_info, icp_kwargs, occupied_clouds, overlap_margin, select_overlap
 from .config import MergeConfig
 from .report import MergeError, Registration
