@@ -30,7 +30,8 @@ from ..map import OccupancyMap
 from .features import CoarseCloud, cell_codes, coarse_cloud, neighbor_pairs, normals
 
 __all__ = ["CellSets", "cell_sets", "consistency_score", "distinct_poses", "free_points", "horizontal_pinning",
-           "level_rotation", "net_agreement", "nudge_poses", "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates"]
+           "level_rotation", "net_agreement", "nudge_poses", "pose_distance", "rotation_z", "translation_candidates",
+           "yaw_candidates"]
 
 _YAW_BINS = 180  # over [0, pi): 1 degree
 
