@@ -227,11 +227,17 @@ def nudge_poses(s1: CellSets, s2: CellSets, poses, step: float, conflict_weight:
     return np.asarray(out, np.float64).reshape(-1, 4, 4), np.asarray(scores, np.float64)
 
 
+def _lookup(sorted_codes, codes) -> tuple[np.ndarray, np.ndarray]:
+    """``(index, found)``: where each of ``codes`` sits in ``sorted_codes`` (non-empty) and
+    whether it is there."""
+    j = np.minimum(np.searchsorted(sorted_codes, codes), sorted_codes.shape[0] - 1)
+    return j, sorted_codes[j] == codes
+
+
 def _member(sorted_codes, codes) -> np.ndarray:
     if sorted_codes.shape[0] == 0:
         return np.zeros(codes.shape, bool)
-    j = np.minimum(np.searchsorted(sorted_codes, codes), sorted_codes.shape[0] - 1)
-    return sorted_codes[j] == codes
+    return _lookup(sorted_codes, codes)[1]
 
 
 def consistency_score(s1: CellSets, s2: CellSets, T_1_2) -> tuple[int, int]:
@@ -266,9 +272,8 @@ def horizontal_pinning(s1: CellSets, s2: CellSets, T_1_2, radius: float) -> floa
         return 0.0
     T = np.asarray(T_1_2, np.float64)
     q = s2.occupied.points @ T[:3, :3].T + T[:3, 3]
-    codes = cell_codes(np.floor(q / c1.voxel).astype(np.int64))
-    at = np.minimum(np.searchsorted(c1.codes, codes), c1.codes.shape[0] - 1)
-    shared = np.unique(at[c1.codes[at] == codes])
+    at, found = _lookup(c1.codes, cell_codes(np.floor(q / c1.voxel).astype(np.int64)))
+    shared = np.unique(at[found])
     n, ok = normals(c1, neighbor_pairs(c1, radius))
     h = n[shared][ok[shared], :2]
     return float(np.linalg.eigvalsh(h.T @ h)[0])
