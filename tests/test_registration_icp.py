@@ -72,6 +72,24 @@ def test_status_instead_of_exceptions_and_host_errors(scene):
         reg.icp(p1, p1, np.eye(4), resolution=RES, min_correspondence_distance=100.0)
 
 
+def test_final_epsilon_stops_the_last_stage_sooner_without_a_recompile(scene):
+    """On two voxel lattices the last stage creeps: a larger ``final_transformation_epsilon``
+    ends it in fewer iterations, near the tight run's transform, through the same compiled
+    program (a traced threshold); a non-positive one is refused."""
+    p1, p2, _ = scene
+    T0 = xyz_rpy64(0.2, 0.1, 0.0, 0.0, 0.0, 0.05)
+    tight = reg.icp(p2, p1, T0, resolution=RES)
+    size = _single.solve_padded._cache_size()
+    loose = reg.icp(p2, p1, T0, resolution=RES, final_transformation_epsilon=RES / 60)
+    assert _single.solve_padded._cache_size() == size
+    assert Status(int(loose.status)).usable and Status(int(tight.status)).usable
+    assert int(loose.num_iterations) < int(tight.num_iterations)
+    rot, tr = _errors(loose.T_target_source, np.asarray(tight.T_target_source, np.float64))
+    assert rot < 0.01 and tr < RES / 4
+    with pytest.raises(ValueError, match="final_transformation_epsilon"):
+        reg.icp(p2, p1, T0, resolution=RES, final_transformation_epsilon=0.0)
+
+
 def test_vmap_over_pairs_matches_single_runs_and_does_not_recompile(scene):
     p1, _, _ = scene
     rng = np.random.default_rng(1)

@@ -37,7 +37,7 @@ from .. import registration as reg
 from .. import se3
 from ..map import OccupancyMap, bucket_capacity
 from ..registration import Status
-from ..registration.features import coarse_cloud, coarse_voxel_size, neighbor_pairs, normals
+from ..registration.features import cell_codes, coarse_cloud, coarse_voxel_size, neighbor_pairs, normals
 from ..registration.global_search import (cell_sets, consistency_score, distinct_poses, free_points, horizontal_pinning,
                                           level_rotation, net_agreement, nudge_poses, pose_distance, rotation_z,
                                           translation_candidates, yaw_candidates)
@@ -107,7 +107,7 @@ def _search_poses(m1, m2, p1, p2, resolution: float, timings: Timings):
     ``(c1, c2, poses (k, 4, 4) T_1_2, correlation scores (k,), info)``."""
     with timings.stage("features"):
         def cells(v):
-            return max(np.unique(np.floor(p / v).astype(np.int64), axis=0).shape[0] for p in (p1, p2))
+            return max(np.unique(cell_codes(np.floor(p / v))).shape[0] for p in (p1, p2))
         v = coarse_voxel_size(cells, resolution)
         c1, c2 = coarse_cloud(p1, v), coarse_cloud(p2, v)
         n1, ok1 = normals(c1, neighbor_pairs(c1, _NORMAL_RADIUS * v))
@@ -240,15 +240,21 @@ def _confidence(gap: float, shared: float, pinning: float) -> float:
 
 def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timings: Timings) -> _Refined:
     """ICP on the commonly mapped subsets under ``T`` (padded to the full clouds' capacities:
-    one compiled ICP per pair), the result made rigid when usable."""
+    one compiled ICP per pair), its last stage ending at the stages' change threshold; the
+    result made rigid when usable."""
     rc = config.registration
     q1, q2 = select_overlap(p1, p2, T, rc.overlap, overlap_margin(config, resolution))
     if min(q1.shape[0], q2.shape[0]) < rc.min_overlap_points:
         return _Refined(np.asarray(T, np.float64), None, (q1, q2), index)
     cap1, cap2 = bucket_capacity(p1.shape[0]), bucket_capacity(p2.shape[0])
+    kw = icp_kwargs(config, resolution)
+    # the last stage ends at the stages' threshold, not a hundredth of it: on a voxel lattice it
+    # creeps on for tens of iterations by millimetres (docs/design.md)
+    kw["final_transformation_epsilon"] = (resolution / 60.0 if kw["transformation_epsilon"] is None
+                                          else kw["transformation_epsilon"])
     with timings.stage("icp") as stage:
         r = stage.ready(reg.icp(_pad(q2, cap2), _pad(q1, cap1), np.asarray(T, np.float64), source_count=q2.shape[0],
-                                target_count=q1.shape[0], **icp_kwargs(config, resolution)))
+                                target_count=q1.shape[0], **kw))
     r = jax.tree_util.tree_map(np.asarray, r)
     T_icp = np.asarray(r.T_target_source, np.float64)
     if Status(int(r.status)).usable and np.all(np.isfinite(T_icp)):

@@ -100,7 +100,8 @@ def icp(source, target, T_target_source_init, *, resolution: float,
         min_correspondence_distance: float | None = None, shrink_factor: float = 0.5,
         transformation_epsilon: float | None = None, max_iterations: int = 100,
         cell_capacity: int = 8, min_inliers: int = 6, swap_larger: bool = True,
-        coarse_matching: str = "centroid", source_count=None, target_count=None) -> IcpResult:
+        coarse_matching: str = "centroid", source_count=None, target_count=None,
+        final_transformation_epsilon: float | None = None) -> IcpResult:
     """Register ``source`` to ``target`` by point-to-point ICP (thesis Alg. 3, eq. 3.18; Besl &
     McKay 1992): returns ``IcpResult`` whose ``T_target_source`` maps source points into the
     target frame.
@@ -111,7 +112,9 @@ def icp(source, target, T_target_source_init, *, resolution: float,
     ``resolution`` [m] sets the defaults: correspondence distances ``10 res -> 2 res``
     halving (``max_correspondence_distance``, ``min_correspondence_distance`` [m],
     ``shrink_factor``), ``transformation_epsilon`` ``res / 60`` (sum of absolute entry changes
-    of T). ``max_iterations`` bounds the correspondence searches; fewer than ``min_inliers``
+    of T; a stage ends below it) and ``final_transformation_epsilon`` ``transformation_epsilon
+    / 100`` (ICP ends below it at the last stage; a traced argument: changing it compiles
+    nothing). ``max_iterations`` bounds the correspondence searches; fewer than ``min_inliers``
     correspondences stop ICP (``Status.TOO_FEW_INLIERS``). ``cell_capacity``: slots per cell
     of the hashed grids.
 
@@ -138,11 +141,14 @@ def icp(source, target, T_target_source_init, *, resolution: float,
     t, tc, t_host = prepare_points(target, target_count, "target")
     kw = dict(max_iterations=int(max_iterations), cell_capacity=int(cell_capacity),
               coarse_matching=coarse_matching)
+    feps = final_transformation_epsilon
+    if feps is not None and not is_traced(feps) and not float(feps) > 0:
+        raise ValueError(f"final_transformation_epsilon must be positive, got {feps!r}")
     if swap_larger and s_host is not None and t_host is not None and s_host > t_host:
         T0_inv = se3.inverse(T0) if is_traced(T0) else np.linalg.inv(np.float64(T0)).astype(np.float32)
-        r = icp_padded(t, tc, s, sc, T0_inv, dists, eps, min_inliers=min_inliers, **kw)
+        r = icp_padded(t, tc, s, sc, T0_inv, dists, eps, feps, min_inliers=min_inliers, **kw)
         return invert_result(r)
-    return icp_padded(s, sc, t, tc, T0, dists, eps, min_inliers=min_inliers, **kw)
+    return icp_padded(s, sc, t, tc, T0, dists, eps, feps, min_inliers=min_inliers, **kw)
 
 
 def icp_with_path(source, target, T_target_source_init, *, resolution: float, **options) -> tuple[IcpResult, IcpPath]:
