@@ -84,18 +84,24 @@ def test_reuse_host_memory_keeps_freed_blocks_and_is_opt_in():
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc setting")
-@pytest.mark.parametrize("value,applied", [(None, True), ("0", False), ("off", False), ("1", True)])
-def test_octomerge_command_reuses_host_memory_unless_turned_off(value, applied):
+@pytest.mark.parametrize("command,value,applied", [
+    ("dump-config", None, False), ("dump-config", "1", True), ("dump-config", "on", True), ("dump-config", "0", False),
+    ("batch", None, True), ("batch", "off", False)])
+def test_octomerge_command_reuses_host_memory_for_batch_or_when_asked(command, value, applied):
+    """``batch`` keeps XLA:CPU's scratch memory by default, a single command does not (its
+    compilation would slow); ``OCTOMERGE_REUSE_HOST_MEMORY`` turns it on or off for all."""
     import os
 
-    code = ("import sys, octomerge_jax.hostmem as h; from octomerge_jax.cli import console_main;"
-            "sys.argv = ['octomerge', 'dump-config']; console_main(); print(h._applied, file=sys.stderr)")
+    code = ("import sys, octomerge_jax.hostmem as h; from octomerge_jax.cli import console_main\n"
+            f"sys.argv = ['octomerge', '{command}'] + (['--help'] if '{command}' == 'batch' else [])\n"
+            "try:\n    console_main()\nexcept SystemExit:\n    pass\n"
+            "print(h._applied, file=sys.stderr)")
     env = {k: v for k, v in os.environ.items() if k != "OCTOMERGE_REUSE_HOST_MEMORY"}
     if value is not None:
         env["OCTOMERGE_REUSE_HOST_MEMORY"] = value
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
     assert out.stderr.strip().splitlines()[-1] == str(applied)
-    assert "[registration]" in out.stdout  # the command itself ran
+    assert ("[registration]" if command == "dump-config" else "manifest") in out.stdout  # the command itself ran
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc setting")

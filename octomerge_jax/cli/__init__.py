@@ -97,17 +97,28 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
 
-def _wants_host_memory_reuse(environ=os.environ) -> bool:
-    """``OCTOMERGE_REUSE_HOST_MEMORY`` unset or not one of ``0 / off / no / false``."""
-    value = environ.get("OCTOMERGE_REUSE_HOST_MEMORY", "1").strip().lower()
-    return value not in ("0", "off", "no", "false")
+#: commands that run the same large kernels many times in one process: they keep XLA:CPU's scratch
+#: memory between calls (``hostmem.reuse_host_memory``); for one merge it saves ~0.1 s warm and
+#: slows its compilation by 4-5 s (docs/design.md, "Host-memory reuse")
+REUSING_COMMANDS = frozenset({"batch"})
+
+
+def _wants_host_memory_reuse(command: str | None, environ=os.environ) -> bool:
+    """``OCTOMERGE_REUSE_HOST_MEMORY``: ``1 / on / yes / true`` for every command, ``0 / off / no
+    / false`` for none; unset (or another value): for the commands of ``REUSING_COMMANDS``."""
+    value = environ.get("OCTOMERGE_REUSE_HOST_MEMORY", "").strip().lower()
+    if value in ("1", "on", "yes", "true"):
+        return True
+    if value in ("0", "off", "no", "false"):
+        return False
+    return command in REUSING_COMMANDS
 
 
 def console_main() -> int:
-    """The ``octomerge`` command: ``main`` in a process of its own, so XLA:CPU's scratch
-    memory is kept for reuse between calls (``hostmem.reuse_host_memory``; opt out with
-    ``OCTOMERGE_REUSE_HOST_MEMORY=0``)."""
-    if _wants_host_memory_reuse():
+    """The ``octomerge`` command: ``main`` in a process of its own; ``batch`` keeps XLA:CPU's
+    scratch memory for reuse between calls (``hostmem.reuse_host_memory``; every command with
+    ``OCTOMERGE_REUSE_HOST_MEMORY=1``, none with ``=0``)."""
+    if _wants_host_memory_reuse(_command_of(sys.argv[1:])):
         reuse_host_memory()
     return main()
 
