@@ -13,7 +13,8 @@ returned to the system), and threads share one malloc arena: XLA's compiler thre
 its lock, so compiling takes 1.3-1.5x as long, and an ICP call ~1.3x. Worth it where large
 kernels run many times in one process (``octomerge batch``), not for one merge. Arenas are
 bound to threads when JAX's backend starts, so call it once at startup, before the first JAX
-computation (``octomerge batch`` does); later it changes nothing and warns. The same from outside Python:
+computation (``octomerge batch`` does); later it changes nothing and warns. The same from
+outside Python:
 ``GLIBC_TUNABLES=glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=2147483647``;
 ``child_env()`` gives that variable to child processes (``octomerge batch``'s local Dask workers).
 Importing the package never does this.
