@@ -30,7 +30,7 @@ from .. import registration as reg
 from ..fusion import default_gap_capacity, fuse_with_report
 from ..map import OccupancyMap, bucket_capacity
 from ..registration import neighbors
-from .clouds import icp_kwargs, occupied_clouds
+from .clouds import icp_kwargs, occupied_clouds, stage_epsilon
 from .config import MergeConfig
 from .merging import check_resolutions, check_transform, merge, pair_report, transform_to_frame_1
 from .globalreg import judge_local
@@ -187,7 +187,7 @@ def _icp_bucket(overlaps: Sequence[Overlap], T_inits: Sequence[np.ndarray], reso
     kw = icp_kwargs(cfg, resolution)
     dists = reg.stage_distances(resolution, kw["max_correspondence_distance"], kw["min_correspondence_distance"],
                                 kw["shrink_factor"])
-    eps = resolution / 60.0 if kw["transformation_epsilon"] is None else kw["transformation_epsilon"]
+    eps = stage_epsilon(cfg, resolution)
     sources, source_counts, targets, target_counts, starts, swaps = [], [], [], [], [], []
     for overlap, T_init in zip(overlaps, T_inits):
         swap = overlap.points_2.shape[0] > overlap.points_1.shape[0]

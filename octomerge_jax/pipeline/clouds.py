@@ -15,7 +15,7 @@ from .config import MergeConfig
 from .timings import Timings
 
 __all__ = ["Clouds", "VOXEL_OVERLAP_VOXELS", "icp_info", "icp_kwargs", "occupied_clouds", "overlap_margin",
-           "point_stats", "select_overlap"]
+           "point_stats", "select_overlap", "stage_epsilon"]
 
 VOXEL_OVERLAP_VOXELS = 3.0
 
@@ -73,6 +73,13 @@ def icp_kwargs(cfg: MergeConfig, resolution: float) -> dict:
                 shrink_factor=r.shrink_factor, transformation_epsilon=r.transformation_epsilon,
                 max_iterations=r.max_iterations, cell_capacity=r.cell_capacity,
                 min_inliers=r.min_inliers, coarse_matching=r.coarse_matching)
+
+
+def stage_epsilon(cfg: MergeConfig, resolution: float) -> float:
+    """ICP's stage threshold on the change of the transform (sum of ``|dT|``): the configured
+    ``transformation_epsilon``, else ``registration.icp``'s default ``resolution / 60``."""
+    eps = cfg.registration.transformation_epsilon
+    return float(resolution) / 60.0 if eps is None else float(eps)
 
 
 def icp_info(r) -> dict:

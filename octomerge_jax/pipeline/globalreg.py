@@ -41,7 +41,7 @@ from ..registration.features import cell_codes, coarse_cloud, coarse_voxel_size,
 from ..registration.global_search import (cell_sets, consistency_score, distinct_poses, free_points, horizontal_pinning,
                                           level_rotation, net_agreement, nudge_poses, pose_distance, rotation_z,
                                           translation_candidates, yaw_candidates)
-from .clouds import icp_info, icp_kwargs, occupied_clouds, overlap_margin, select_overlap
+from .clouds import icp_info, icp_kwargs, occupied_clouds, overlap_margin, select_overlap, stage_epsilon
 from .config import MergeConfig
 from .report import MergeError, Registration
 from .timings import Timings
@@ -250,8 +250,7 @@ def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timin
     kw = icp_kwargs(config, resolution)
     # the last stage ends at the stages' threshold, not a hundredth of it: on a voxel lattice it
     # creeps on for tens of iterations by millimetres (docs/design.md)
-    kw["final_transformation_epsilon"] = (resolution / 60.0 if kw["transformation_epsilon"] is None
-                                          else kw["transformation_epsilon"])
+    kw["final_transformation_epsilon"] = stage_epsilon(config, resolution)
     with timings.stage("icp") as stage:
         r = stage.ready(reg.icp(_pad(q2, cap2), _pad(q1, cap1), np.asarray(T, np.float64), source_count=q2.shape[0],
                                 target_count=q1.shape[0], **kw))
