@@ -10,8 +10,8 @@ the same, so every call faults its scratch pages in again (figures: ``docs/desig
 ``mmap`` and never trim it, so freed scratch stays in the process and the next call of the same
 size reuses it. The costs: the process keeps its peak heap until it exits (it is reused, not
 returned to the system), and threads share one malloc arena: XLA's compiler threads queue for
-its lock, so compiling takes 1.3-1.5x as long, and an ICP call ~1.3x. Worth it where large
-kernels run many times in one process (``octomerge batch``), not for one merge. Arenas are
+its lock, so compiling takes longer (figures: ``docs/design.md``). Worth it where large kernels
+run many times in one process (``octomerge batch``), not for one merge. Arenas are
 bound to threads when JAX's backend starts, so call it once at startup, before the first JAX
 computation (``octomerge batch`` does); later it changes nothing and warns. The same from
 outside Python:

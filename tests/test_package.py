@@ -91,8 +91,9 @@ def test_octomerge_command_reuses_host_memory_for_batch_or_when_asked(command, v
     compilation would slow); ``OCTOMERGE_REUSE_HOST_MEMORY`` turns it on or off for all."""
     import os
 
+    argv = ["octomerge", command] + (["--help"] if command == "batch" else [])  # batch needs a manifest
     code = ("import sys, octomerge_jax.hostmem as h; from octomerge_jax.cli import console_main\n"
-            f"sys.argv = ['octomerge', '{command}'] + (['--help'] if '{command}' == 'batch' else [])\n"
+            f"sys.argv = {argv!r}\n"
             "try:\n    console_main()\nexcept SystemExit:\n    pass\n"
             "print(h._applied, file=sys.stderr)")
     env = {k: v for k, v in os.environ.items() if k != "OCTOMERGE_REUSE_HOST_MEMORY"}

@@ -98,8 +98,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 #: commands that run the same large kernels many times in one process: they keep XLA:CPU's scratch
-#: memory between calls (``hostmem.reuse_host_memory``); for one merge it saves ~0.1 s warm and
-#: slows its compilation by 4-5 s (docs/design.md, "Host-memory reuse")
+#: memory between calls (``hostmem.reuse_host_memory``); one merge would gain little and compile
+#: slower (docs/design.md, "Host-memory reuse")
 REUSING_COMMANDS = frozenset({"batch"})
 
 
