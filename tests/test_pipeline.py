@@ -497,7 +497,8 @@ def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():
     """``octomerge demo``'s job with ``refine="icp+dense"``: the dense alignment, started at the
     level of ICP's last correspondence distance, brings ICP's result (0.106 m) within a quarter
     voxel (0.020 m measured). Run from the coarsest level it had carried ICP's result 0.33 m /
-    0.07 rad off (the 0.8 and 0.4 m levels prefer that pose)."""
+    0.07 rad off (the 0.8 and 0.4 m levels prefer that pose). The same when ICP runs out of
+    iterations on its last stage (it did at 100 iterations from 0.3 m under other XLA flags)."""
     from octomerge_jax.cli.demo import perturbed_guess
     from octomerge_jax.pipeline import DemoConfig
     from octomerge_jax.sim import make_two_robot_maps
@@ -510,6 +511,10 @@ def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():
     dense = rep.icp["dense"]
     assert dense["status"] == 0 and dense["start_level"] > 0, dense
     assert rep.displacement < min(0.05, 0.5 * rep_icp.displacement), (rep.displacement, rep_icp.displacement)
+    short = MergeConfig().replace(registration={"max_iterations": rep_icp.icp["num_iterations"] - 5})
+    _, rep_short = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T, config=short)
+    assert rep_short.icp["status"] == "max_iterations" and rep_short.icp["dense"]["start_level"] > 0, rep_short.icp
+    assert rep_short.displacement < 0.05, rep_short.displacement
 
 
 @pytest.mark.slow  # simulates a 100 x 60 m lidar campus (~1 min) and merges 0.4M-leaf maps

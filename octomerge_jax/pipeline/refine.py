@@ -208,11 +208,13 @@ def accept_icp(best, info: dict, T_1_2_init, config: MergeConfig) -> tuple[np.nd
 def dense_after_icp(m1, m2, clouds: Clouds, T_icp, T_1_2_init, info: dict, config: MergeConfig,
                     timings: Timings, warnings: list[str]) -> tuple[np.ndarray, dict]:
     """``refine="icp+dense"``: the dense alignment from ICP's transform ``T_icp``, from the
-    level of ICP's last correspondence distance on when ICP converged; if its result is not
-    usable, from the initial guess; if that fails too, ``T_icp`` is kept and both failures go
-    to ``warnings``. Returns ``(T_1_2, info with the dense figures under "dense")``."""
+    level of ICP's last correspondence distance on when ICP converged or ran out of iterations
+    (it was still refining at that distance); if its result is not usable, from the initial
+    guess; if that fails too, ``T_icp`` is kept and both failures go to ``warnings``. Returns
+    ``(T_1_2, info with the dense figures under "dense")``."""
     retry: list[str] = []
-    within = info["correspondence_distance"] if info["converged"] else None
+    refining = info["converged"] or info["status"] == str(Status.MAX_ITERATIONS)
+    within = info["correspondence_distance"] if refining else None
     T_1_2, dense_info, _ = refine_dense(m1, m2, T_icp, timings, retry, within_m=within)
     if not Status(dense_info["status"]).usable:
         T_1_2, dense_info, _ = refine_dense(m1, m2, T_1_2_init, timings, retry)
