@@ -13,6 +13,7 @@ docs/design.md, "Compile cache and warm-up"."""
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import functools
 import hashlib
 import inspect
@@ -29,7 +30,7 @@ from ._fileutil import atomic_output, remove_stale_temp_files
 from ._ops import is_traced
 
 __all__ = ["DEFAULT_MAX_BYTES", "LOAD_EVENT", "StoredJit", "stored_jit", "open_store", "close_store", "store_dir",
-           "tidy_store"]
+           "tidy_store", "compile_listener"]
 
 LOAD_EVENT = "/octomerge_jax/kernel_store/loads"
 """``jax.monitoring`` event recorded for every program loaded from the store."""
@@ -38,6 +39,9 @@ DEFAULT_MAX_BYTES = 2 << 30
 """The store's default size bound [bytes] (2 GiB; a campus-size merge keeps ~5 MB)."""
 
 _COMPILE_LOCK = threading.Lock()
+_KEYS_LOCK = threading.Lock()
+_KEY_LOCKS: dict[str, threading.Lock] = {}
+_LISTENER: contextvars.ContextVar = contextvars.ContextVar("octomerge_compile_listener", default=None)
 _STATE: dict = {"dir": None, "environment": None, "backend_ready": False}
 _FORMAT = 1
 
@@ -151,14 +155,29 @@ def _prepare_backend() -> None:
     _STATE["backend_ready"] = True
 
 
+def _cache_threshold_override():
+    """A context manager that raises JAX's persistent-cache write threshold to infinity for
+    this thread only (``None`` where this JAX lacks the thread-local setting)."""
+    try:
+        from jax._src import config as jax_config  # noqa: PLC0415 - private, checked below
+
+        return jax_config.persistent_cache_min_compile_time_secs(float("inf"))
+    except (ImportError, AttributeError, TypeError):
+        return None
+
+
 def _compile_fresh(lowered):
     """``lowered.compile()`` that neither reads nor writes JAX's persistent compilation cache. An
     executable read back from that cache serializes without its compiled functions on the CPU
     (the copy then fails with ``NOT_FOUND: Function ... not found``), so the store keeps only
     fresh compiles: ``lowered`` comes from the ``stored_``-named twin of the kernel (a program
     of its own name, never found in that cache), and the cache's write threshold is raised for
-    the one compile so it is not written there either (one such compile at a time, so threads
-    never leave the threshold raised)."""
+    the one compile so it is not written there either: for the compiling thread only, so
+    threads compile side by side (where JAX lacks that, globally and one compile at a time)."""
+    override = _cache_threshold_override()
+    if override is not None:
+        with override:
+            return lowered.compile()
     with _COMPILE_LOCK:
         threshold = jax.config.jax_persistent_cache_min_compile_time_secs
         jax.config.update("jax_persistent_cache_min_compile_time_secs", float("inf"))
@@ -166,6 +185,24 @@ def _compile_fresh(lowered):
             return lowered.compile()
         finally:
             jax.config.update("jax_persistent_cache_min_compile_time_secs", threshold)
+
+
+def _key_lock(key: str) -> threading.Lock:
+    """The lock that makes one thread compile or load the program ``key`` while others wait."""
+    with _KEYS_LOCK:
+        return _KEY_LOCKS.setdefault(key, threading.Lock())
+
+
+@contextlib.contextmanager
+def compile_listener(callback):
+    """Within the block, call ``callback(kernel)`` (``kernel``: the kernel's ``module.name``)
+    in this thread before each stored kernel it compiles afresh (a program neither held by the
+    process nor in the open store). Threads started inside the block do not inherit it."""
+    token = _LISTENER.set(callback)
+    try:
+        yield
+    finally:
+        _LISTENER.reset(token)
 
 
 def _renamed(fun):
@@ -227,11 +264,17 @@ class StoredJit:
                                    [str(jax.typeof(x)) for x in leaves], _environment())).encode()).hexdigest()[:32]
         compiled = self._loaded.get(key)
         if compiled is None:
-            compiled = self._load(directory, key)
-        if compiled is None:
-            compiled = _compile_fresh(self._for_store.lower(*dynamic, **static))
-            self._save(directory, key, compiled)
-        self._loaded[key] = compiled
+            with _key_lock(key):  # another thread compiling it: wait and take its program
+                compiled = self._loaded.get(key)
+                if compiled is None:
+                    compiled = self._load(directory, key)
+                if compiled is None:
+                    listener = _LISTENER.get()
+                    if listener is not None:
+                        listener(self._name)
+                    compiled = _compile_fresh(self._for_store.lower(*dynamic, **static))
+                    self._save(directory, key, compiled)
+                self._loaded[key] = compiled
         return compiled(*dynamic)
 
     def _path(self, directory: Path, key: str) -> Path:
