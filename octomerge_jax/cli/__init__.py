@@ -17,7 +17,7 @@ import sys
 from ..budget import MemoryBudgetError
 from ..hostmem import reuse_host_memory
 from ._common import CliError
-from .cache import command_caches
+from .cache import command_caches, use_fast_compile
 
 # command -> (module in this package, the one-line summary ``octomerge --help`` shows; the same
 # text as the module's ``add_parser(help=...)``, checked by tests/test_startup.py), in --help order
@@ -115,11 +115,13 @@ def _wants_host_memory_reuse(command: str | None, environ=os.environ) -> bool:
 
 
 def console_main() -> int:
-    """The ``octomerge`` command: ``main`` in a process of its own; ``batch`` keeps XLA:CPU's
-    scratch memory for reuse between calls (``hostmem.reuse_host_memory``; every command with
-    ``OCTOMERGE_REUSE_HOST_MEMORY=1``, none with ``=0``)."""
+    """The ``octomerge`` command: ``main`` in a process of its own, compiling with
+    ``cache.FAST_COMPILE_FLAGS``; ``batch`` keeps XLA:CPU's scratch memory for reuse between calls
+    (``hostmem.reuse_host_memory``; every command with ``OCTOMERGE_REUSE_HOST_MEMORY=1``, none with
+    ``=0``)."""
     if _wants_host_memory_reuse(_command_of(sys.argv[1:])):
         reuse_host_memory()
+    use_fast_compile()
     return main()
 
 
