@@ -18,6 +18,7 @@ from ..pipeline import DEMO_SCENES, REFINE_CHOICES, MergeConfig, load_config
 from ..io import save
 from ..pipeline import merge, transform_from_xyz_rpy
 from ._common import CliError
+from .compile_ahead import compile_ahead
 from .outputs import check_writable_folder
 from .merge import write_figures
 from .plots import plot_merge_comparison
@@ -113,7 +114,7 @@ def run(args) -> int:
     print(f"merging from a guess off by {list(d.error_xyz)} m and rpy {list(d.error_rpy_rad)} rad "
           f"({cfg.registration.refine}) ...", flush=True)
     bar = StageBar(show_bars(args.quiet), "merge")
-    with bar.watch():
+    with bar.watch(), compile_ahead(m1, m2, T_init, cfg):
         merged, report = merge(m1, m2, T_init, T_1_2_true=T_true, config=cfg)
     bar.close()
     save(merged, out / "merged.bt")

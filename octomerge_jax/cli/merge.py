@@ -15,6 +15,7 @@ from ..io import save
 from ..io.bags import write_bag
 from ..pipeline import MergeError, icp_trace, merge, transform_from_xyz_rpy
 from ._common import CliError
+from .compile_ahead import compile_ahead
 from ._inputs import add_bag_options, check_map_input, load_map_inputs
 from .outputs import FIGURE_SUFFIXES, MAP_SUFFIXES, angle_warnings, check_output, writing
 from .progress import StageBar, show_bars
@@ -195,9 +196,9 @@ def run(args) -> int:
     given = bool(args.pose or args.xyz or args.rpy)
     bar = StageBar(show_bars(args.quiet), "merge")
     try:
-        with bar.watch():
-            merged, report = merge(m1, m2, transform_from_xyz_rpy(*guess) if given else None, refine=args.refine,
-                                   T_1_2_true=truth, config=cfg)
+        T_init = transform_from_xyz_rpy(*guess) if given else None
+        with bar.watch(), compile_ahead(m1, m2, T_init, cfg):
+            merged, report = merge(m1, m2, T_init, refine=args.refine, T_1_2_true=truth, config=cfg)
     except MergeError as err:
         raise CliError(str(err), _KIND_EXIT.get(err.kind, EXIT_INPUT)) from None
     finally:

@@ -10,7 +10,7 @@ from .config_file import dumps_toml, load_config, save_config
 from .globalreg import judge_local, register_global
 from .many import merge_many
 from .many_report import EdgeReport, ManyReport, MapReport
-from .merging import check_resolutions, merge, resample_to_resolution, transform_from_xyz_rpy
+from .merging import check_resolutions, merge, resample_to_resolution, transform_and_fuse, transform_from_xyz_rpy
 from .ranking import rank_by_map_agreement
 from .refine import register
 from .report import MergeError, MergeReport, Registration
@@ -25,6 +25,6 @@ __all__ = [
     "VOXEL_OVERLAP_VOXELS", "check_resolutions", "config_from_dict", "config_to_dict", "dumps_toml", "icp_trace",
     "judge_local", "load_config", "merge", "merge_batch", "merge_many", "overlap_margin", "point_stats",
     "rank_by_map_agreement", "register", "register_global", "resample_to_resolution", "save_config",
-    "transform_from_xyz_rpy", "validate",
+    "transform_and_fuse", "transform_from_xyz_rpy", "validate",
     "stage_listener",  # --- bags (progress)
 ]

@@ -39,7 +39,7 @@ from .report import MergeError, MergeReport, Registration
 from .timings import Timings
 
 __all__ = ["check_resolutions", "check_transform", "config_with_overrides", "merge", "pair_report",
-           "resample_to_resolution", "transform_from_xyz_rpy", "transform_to_frame_1"]
+           "resample_to_resolution", "transform_and_fuse", "transform_from_xyz_rpy", "transform_to_frame_1"]
 
 
 def transform_from_xyz_rpy(x: float = 0.0, y: float = 0.0, z: float = 0.0, roll_rad: float = 0.0,
@@ -148,6 +148,18 @@ def transform_to_frame_1(m2: OccupancyMap, T_1_2, config: MergeConfig, timings: 
         raise MergeError(f"transforming map 2: {err}", "transform") from None
 
 
+def transform_and_fuse(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig, timings: Timings):
+    """The merge after its registration (thesis Alg. 4-8): map 2 resampled into map 1's frame by
+    ``T_1_2`` ((4, 4), map 2's frame into map 1's [m]; stage ``transform``) and fused into map 1
+    (stage ``fuse``). Returns ``(map 2 in frame 1, merged map, FuseReport)``. Raises
+    ``MergeError("transform")``."""
+    m2_in_1 = transform_to_frame_1(m2, T_1_2, config, timings)
+    weights = tuple(config.fuse.weights[:2]) if len(config.fuse.weights) >= 2 else (1.0, 1.0)
+    with timings.stage("fuse") as stage:
+        merged, frep = stage.ready(fuse_with_report(m1, m2_in_1, config.fuse.rule, weights=weights))
+    return m2_in_1, merged, frep
+
+
 def pair_report(m1: OccupancyMap, m2: OccupancyMap, registration: Registration, T_1_2_init, T_1_2_true,
                 config: MergeConfig, counts: dict, timings: dict, warnings: Sequence[str]) -> MergeReport:
     """The ``MergeReport`` of one merged pair: ``registration`` with the thesis errors
@@ -223,10 +235,7 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
     # refine="global" without a guess: no guess to verify among its candidates
     guess = None if T_1_2_init is None and cfg.registration.refine == "global" else T_init
     registration = register(m1, m2, guess, cfg, timings)
-    m2_in_1 = transform_to_frame_1(m2, registration.T_1_2, cfg, timings)
-    weights = tuple(cfg.fuse.weights[:2]) if len(cfg.fuse.weights) >= 2 else (1.0, 1.0)
-    with timings.stage("fuse") as stage:
-        merged, frep = stage.ready(fuse_with_report(m1, m2_in_1, cfg.fuse.rule, weights=weights))
+    m2_in_1, merged, frep = transform_and_fuse(m1, m2, registration.T_1_2, cfg, timings)
     counts = {"leaves_1": m1.num_leaves, "leaves_2": m2.num_leaves, **registration.counts,
               "leaves_2_transformed": m2_in_1.num_leaves, "leaves_merged": merged.num_leaves,
               "fuse": frep.host()}

@@ -1,0 +1,59 @@
+"""Compiling a merge's later kernels while its registration compiles: a cold command's compile
+time spread over both cores. docs/design.md, "Compile cache and warm-up"."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+
+import jax
+import numpy as np
+
+from ..budget import current_budget, memory_budget
+from ..kernel_store import compile_listener
+from ..map import OccupancyMap
+from ..pipeline import MergeConfig, Timings, transform_and_fuse
+
+__all__ = ["compile_ahead", "SHARE_OF_BUDGET"]
+
+SHARE_OF_BUDGET = 0.25
+"""The share of the memory budget (``budget.current_budget``) the work ahead may take; a pair
+that needs more is not worked ahead."""
+
+
+@contextlib.contextmanager
+def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig):
+    """Within the block (one ``merge`` of ``m1`` and ``m2`` with ``config``), the first time the
+    registration compiles a stored kernel afresh (``kernel_store.compile_listener``: only with
+    the kernel store open and the program in neither the process nor the store), a second
+    thread runs the rest of the merge (``transform_and_fuse``) from ``T_1_2`` ((4, 4); the
+    guess, or the identity) and drops its result. Its programs' shapes are bucketed, so they are
+    the ones the real merge needs unless the final transform changes a bucket; the real merge
+    then loads them, or waits for the thread compiling them, instead of compiling them after
+    the registration. A warm merge starts no thread; work ahead that fails or exceeds
+    ``SHARE_OF_BUDGET`` of the memory budget is dropped silently (the real merge reports its
+    own errors). Maps of two resolutions (resampled by ``merge`` first) are not worked ahead.
+    The block's exit waits for the thread."""
+    threads: list[threading.Thread] = []
+    budget = int(current_budget() * SHARE_OF_BUDGET)
+    T = np.eye(4) if T_1_2 is None else np.asarray(T_1_2, np.float64)
+
+    def work():
+        with memory_budget(budget), contextlib.suppress(Exception):
+            jax.block_until_ready(transform_and_fuse(m1, m2, T, config, Timings())[1:])
+
+    def on_compile(kernel: str):
+        if not threads and ".registration." in kernel:
+            threads.append(threading.Thread(target=work, name="octomerge-compile-ahead", daemon=True))
+            threads[0].start()
+
+    if not math.isclose(m1.resolution, m2.resolution, rel_tol=1e-9):
+        yield
+        return
+    try:
+        with compile_listener(on_compile):
+            yield
+    finally:
+        for t in threads:
+            t.join()

@@ -1,0 +1,126 @@
+"""How a cold ``octomerge`` command compiles: with ``cli.cache.FAST_COMPILE_FLAGS`` (the user's
+``XLA_FLAGS`` kept), and with the merge's later kernels compiled in a second thread while the
+registration compiles (``cli.compile_ahead``)."""
+
+import os
+import subprocess
+import sys
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from octomerge_jax import kernel_store
+from octomerge_jax.cli import compile_ahead as ahead
+from octomerge_jax.cli.cache import FAST_COMPILE_FLAGS, fast_compile_flags
+from octomerge_jax.kernel_store import stored_jit
+from octomerge_jax.pipeline import MergeConfig
+
+
+def test_fast_compile_flags_are_added_and_the_users_own_setting_wins():
+    (flag,) = FAST_COMPILE_FLAGS
+    assert fast_compile_flags(None) == fast_compile_flags("") == flag
+    assert fast_compile_flags("--xla_force_host_platform_device_count=2") == \
+        f"--xla_force_host_platform_device_count=2 {flag}"
+    name = flag.split("=")[0]
+    assert fast_compile_flags(f"{name}=true") == f"{name}=true"
+
+
+def test_the_command_sets_xla_flags_for_itself_and_its_children():
+    code = ("import os, sys\nfrom octomerge_jax.cli import console_main\nsys.argv = ['octomerge', '--version']\n"
+            "try:\n    console_main()\nexcept SystemExit:\n    pass\nprint(os.environ['XLA_FLAGS'])")
+    env = {**os.environ, "XLA_FLAGS": "--xla_dump_disable_metadata=true"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    assert out.stdout.strip().splitlines()[-1] == fast_compile_flags("--xla_dump_disable_metadata=true")
+
+
+def _twice(x):
+    return x * 2
+
+
+def _thrice(x):
+    return x * 3
+
+
+_twice.__module__ = "octomerge_jax.registration.probe"  # compiled as the registration's kernels are
+REGISTRATION_KERNEL = stored_jit(_twice)
+OTHER_KERNEL = stored_jit(_thrice)
+
+
+@pytest.fixture
+def store(tmp_path):
+    """A store of the test's own (the run's, tests/conftest.py, is put back after)."""
+    for k in (REGISTRATION_KERNEL, OTHER_KERNEL):
+        k._loaded.clear()
+    run_store = kernel_store.store_dir()
+    kernel_store.open_store(tmp_path / "kernels")
+    yield tmp_path / "kernels"
+    kernel_store.close_store()
+    if run_store is not None:
+        kernel_store.open_store(run_store)
+
+
+@pytest.fixture
+def calls(monkeypatch):
+    """The work ahead's calls: ``(thread name, T_1_2)`` each."""
+    seen = []
+
+    def transform_and_fuse(m1, m2, T_1_2, config, timings):
+        seen.append((threading.current_thread().name, np.asarray(T_1_2)))
+        return None, np.zeros(1), None
+
+    monkeypatch.setattr(ahead, "transform_and_fuse", transform_and_fuse)
+    return seen
+
+
+def test_the_rest_of_the_merge_runs_ahead_when_the_registration_compiles(store, calls):
+    m = SimpleNamespace(resolution=0.1)
+    T = np.eye(4)
+    T[0, 3] = 2.0
+    with ahead.compile_ahead(m, m, T, MergeConfig()):
+        OTHER_KERNEL(np.arange(3.0))  # not the registration's: nothing starts
+        assert calls == []
+        REGISTRATION_KERNEL(np.arange(3.0))
+        REGISTRATION_KERNEL(np.arange(4.0))  # started once
+    assert len(calls) == 1 and calls[0][0] == "octomerge-compile-ahead"
+    np.testing.assert_array_equal(calls[0][1], T)
+    REGISTRATION_KERNEL._loaded.clear()
+    with ahead.compile_ahead(m, m, None, MergeConfig()):
+        REGISTRATION_KERNEL(np.arange(3.0))  # loaded from the store: warm, nothing starts
+    assert len(calls) == 1
+    with ahead.compile_ahead(m, SimpleNamespace(resolution=0.2), T, MergeConfig()):
+        REGISTRATION_KERNEL(np.arange(5.0))  # map 2 is resampled first: not worked ahead
+    assert len(calls) == 1
+
+
+def test_work_ahead_that_fails_is_dropped(store, monkeypatch):
+    def fail(*args):
+        raise MemoryError("over the budget")
+
+    monkeypatch.setattr(ahead, "transform_and_fuse", fail)
+    m = SimpleNamespace(resolution=0.1)
+    with ahead.compile_ahead(m, m, None, MergeConfig()):
+        assert int(REGISTRATION_KERNEL(np.arange(3.0))[1]) == 2
+
+
+def test_threads_compile_a_kernel_once_and_the_listener_hears_only_fresh_compiles(store):
+    heard, outs = [], []
+    barrier = threading.Barrier(3)
+
+    def call():
+        with kernel_store.compile_listener(heard.append):
+            barrier.wait()
+            outs.append(np.asarray(OTHER_KERNEL(np.arange(6.0))))
+
+    threads = [threading.Thread(target=call) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert heard == [f"{__name__}._thrice"] and len(outs) == 3
+    assert all(np.array_equal(o, np.arange(6.0) * 3) for o in outs)
+    OTHER_KERNEL._loaded.clear()
+    with kernel_store.compile_listener(heard.append):
+        OTHER_KERNEL(np.arange(6.0))  # from the store
+    assert len(heard) == 1 and len(list(store.glob("_thrice-*.pkl"))) == 1
