@@ -32,6 +32,9 @@ def main(argv: list[str]) -> int:
     if argv[:1] == ["--top"]:
         top, argv = int(argv[1]), argv[2:]
     t0 = time.perf_counter()
+    from octomerge_jax.cli.cache import use_fast_compile
+
+    use_fast_compile()  # the command's XLA flags, before JAX starts
     import jax
 
     from octomerge_jax.cli import main as octomerge
