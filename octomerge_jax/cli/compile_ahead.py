@@ -10,16 +10,23 @@ import threading
 import jax
 import numpy as np
 
+from .. import se3
 from ..budget import current_budget, memory_budget
 from ..kernel_store import compile_listener
 from ..map import OccupancyMap
 from ..pipeline import MergeConfig, Timings, transform_and_fuse
 
-__all__ = ["compile_ahead", "SHARE_OF_BUDGET"]
+__all__ = ["compile_ahead", "SHARE_OF_BUDGET", "UNGUESSED_YAW_RAD"]
 
 SHARE_OF_BUDGET = 0.25
 """The share of the memory budget (``budget.current_budget``) the work ahead may take; a pair
 that needs more is not worked ahead."""
+
+UNGUESSED_YAW_RAD = 0.5
+"""The turn (about the z axis through the origin) the work ahead moves map 2 by when the merge
+has no guess: a map turned off the grid's axes by any angle touches about twice the destination
+bricks of the unturned map, so a found transform's buckets are a turned map's, not the
+identity's (docs/design.md)."""
 
 
 @contextlib.contextmanager
@@ -28,7 +35,7 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     registration compiles a stored kernel afresh (``kernel_store.compile_listener``: only with
     the kernel store open and the program in neither the process nor the store), a second
     thread runs the rest of the merge (``transform_and_fuse``) from ``T_1_2`` ((4, 4); the
-    guess, or the identity) and drops its result. Its programs' shapes are bucketed, so they are
+    guess; ``None``: a turn by ``UNGUESSED_YAW_RAD``) and drops its result. Its programs' shapes are bucketed, so they are
     the ones the real merge needs unless the final transform changes a bucket; the real merge
     then loads them, or waits for the thread compiling them, instead of compiling them after
     the registration. A warm merge starts no thread; work ahead that fails or exceeds
@@ -37,7 +44,8 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     The block's exit waits for the thread."""
     threads: list[threading.Thread] = []
     budget = int(current_budget() * SHARE_OF_BUDGET)
-    T = np.eye(4) if T_1_2 is None else np.asarray(T_1_2, np.float64)
+    T = se3.from_xyz_rpy(0.0, 0.0, 0.0, 0.0, 0.0, UNGUESSED_YAW_RAD, xp=np) if T_1_2 is None \
+        else np.asarray(T_1_2, np.float64)
 
     def work():
         with memory_budget(budget), contextlib.suppress(Exception):
