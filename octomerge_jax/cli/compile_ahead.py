@@ -35,10 +35,10 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     registration compiles a stored kernel afresh (``kernel_store.compile_listener``: only with
     the kernel store open and the program in neither the process nor the store), a second
     thread runs the rest of the merge (``transform_and_fuse``) from ``T_1_2`` ((4, 4); the
-    guess; ``None``: a turn by ``UNGUESSED_YAW_RAD``) and drops its result. Its programs' shapes are bucketed, so they are
-    the ones the real merge needs unless the final transform changes a bucket; the real merge
-    then loads them, or waits for the thread compiling them, instead of compiling them after
-    the registration. A warm merge starts no thread; work ahead that fails or exceeds
+    guess; ``None``: a turn by ``UNGUESSED_YAW_RAD``) and drops its result. Its programs'
+    shapes are bucketed, so they are the ones the real merge needs unless the final transform
+    changes a bucket; the real merge then loads them, or waits for the thread compiling them,
+    instead of compiling them after the registration. A warm merge starts no thread; work ahead that fails or exceeds
     ``SHARE_OF_BUDGET`` of the memory budget is dropped silently (the real merge reports its
     own errors). Maps of two resolutions (resampled by ``merge`` first) are not worked ahead.
     The block's exit waits for the thread."""
