@@ -13,7 +13,7 @@ import pytest
 
 from octomerge_jax import kernel_store
 from octomerge_jax.cli import compile_ahead as ahead
-from octomerge_jax.cli.cache import FAST_COMPILE_FLAGS, fast_compile_flags
+from octomerge_jax.cli.cache import FAST_COMPILE_FLAGS, FAST_COMPILE_JAXLIB, fast_compile_flags, use_fast_compile
 from octomerge_jax.kernel_store import stored_jit
 from octomerge_jax.pipeline import MergeConfig
 
@@ -27,12 +27,25 @@ def test_fast_compile_flags_are_added_and_the_users_own_setting_wins():
     assert fast_compile_flags(f"{name}=true") == f"{name}=true"
 
 
-def test_the_command_sets_xla_flags_for_itself_and_its_children():
-    code = ("import os, sys\nfrom octomerge_jax.cli import console_main\nsys.argv = ['octomerge', '--version']\n"
-            "try:\n    console_main()\nexcept SystemExit:\n    pass\nprint(os.environ['XLA_FLAGS'])")
+def test_a_subcommand_sets_xla_flags_for_itself_and_its_children():
+    code = ("import os, sys\nfrom octomerge_jax.cli import console_main\nsys.argv = ['octomerge'] + sys.argv[1:]\n"
+            "try:\n    console_main()\nexcept SystemExit:\n    pass\nprint(os.environ.get('XLA_FLAGS'))")
     env = {**os.environ, "XLA_FLAGS": "--xla_dump_disable_metadata=true"}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
-    assert out.stdout.strip().splitlines()[-1] == fast_compile_flags("--xla_dump_disable_metadata=true")
+
+    def flags(*argv):
+        out = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, check=True, env=env)
+        return out.stdout.strip().splitlines()[-1]
+
+    assert flags("info", "--help") == fast_compile_flags("--xla_dump_disable_metadata=true")
+    assert flags("--version") == "--xla_dump_disable_metadata=true"  # loads no JAX
+
+
+def test_only_a_jaxlib_known_to_have_the_flags_gets_them():
+    """XLA aborts on a flag it does not know: an untested jaxlib runs without them."""
+    environ = {}
+    assert not use_fast_compile(environ, jaxlib_version="0.99.0") and environ == {}
+    assert use_fast_compile(environ, jaxlib_version=FAST_COMPILE_JAXLIB[0] + "1")
+    assert environ == {"XLA_FLAGS": fast_compile_flags(None)}
 
 
 def _twice(x):

@@ -115,13 +115,15 @@ def _wants_host_memory_reuse(command: str | None, environ=os.environ) -> bool:
 
 
 def console_main() -> int:
-    """The ``octomerge`` command: ``main`` in a process of its own, compiling with
-    ``cache.FAST_COMPILE_FLAGS``; ``batch`` keeps XLA:CPU's scratch memory for reuse between calls
-    (``hostmem.reuse_host_memory``; every command with ``OCTOMERGE_REUSE_HOST_MEMORY=1``, none with
-    ``=0``)."""
-    if _wants_host_memory_reuse(_command_of(sys.argv[1:])):
+    """The ``octomerge`` command: ``main`` in a process of its own, a subcommand compiling with
+    ``cache.FAST_COMPILE_FLAGS`` (``cache.use_fast_compile``); ``batch`` keeps XLA:CPU's scratch
+    memory for reuse between calls (``hostmem.reuse_host_memory``; every command with
+    ``OCTOMERGE_REUSE_HOST_MEMORY=1``, none with ``=0``)."""
+    command = _command_of(sys.argv[1:])
+    if _wants_host_memory_reuse(command):
         reuse_host_memory()
-    use_fast_compile()
+    if command is not None:  # --help and --version load no JAX
+        use_fast_compile()
     return main()
 
 

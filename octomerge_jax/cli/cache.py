@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 
 __all__ = ["cache_dir", "enable_compilation_cache", "command_caches", "worker_env", "open_worker_store",
-           "STORE_VARIABLE", "FAST_COMPILE_FLAGS", "fast_compile_flags", "use_fast_compile"]
+           "STORE_VARIABLE", "FAST_COMPILE_FLAGS", "FAST_COMPILE_JAXLIB", "fast_compile_flags", "use_fast_compile"]
 
 STORE_VARIABLE = "OCTOMERGE_KERNEL_STORE"
 """Environment variable that hands the kernel store to ``batch``'s worker processes."""
@@ -20,7 +20,11 @@ _OFF = ("", "off", "0", "none")
 FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
 """XLA flags every ``octomerge`` process compiles with: XLA:CPU's classic fusion emitters, which
 compile a merge's programs ~25 % faster than the MLIR ones at the same run time (figures:
-docs/design.md, "Compile cache and warm-up"). Ignored on other backends."""
+docs/design.md, "XLA flags of the command line"). Ignored on other backends."""
+
+FAST_COMPILE_JAXLIB = ("0.10.",)
+"""Prefixes of the jaxlib versions whose XLA is known to have ``FAST_COMPILE_FLAGS``: XLA aborts
+the process on a flag it does not know, so with any other jaxlib the flags are left out."""
 
 
 def cache_dir(environ=os.environ) -> str | None:
@@ -90,11 +94,20 @@ def fast_compile_flags(xla_flags: str | None) -> str:
     return " ".join(flags)
 
 
-def use_fast_compile(environ=os.environ) -> None:
+def use_fast_compile(environ=os.environ, jaxlib_version: str | None = None) -> bool:
     """Set ``$XLA_FLAGS`` in ``environ`` to ``fast_compile_flags`` of its value: for this process
     (call it before its first JAX computation, when XLA reads the variable) and the processes it
-    starts. The ``octomerge`` command does; importing the library never does."""
+    starts. Only with a jaxlib of ``FAST_COMPILE_JAXLIB`` (``jaxlib_version``: the installed
+    one's by default); returns whether the flags were set. The ``octomerge`` command does this;
+    importing the library never does."""
+    if jaxlib_version is None:
+        from jaxlib import version
+
+        jaxlib_version = version.__version__
+    if not jaxlib_version.startswith(FAST_COMPILE_JAXLIB):
+        return False
     environ["XLA_FLAGS"] = fast_compile_flags(environ.get("XLA_FLAGS"))
+    return True
 
 
 def worker_env() -> dict[str, str]:
