@@ -492,8 +492,7 @@ def _pick(T_pick):
                      swapped=np.bool_(False))
 
 
-@pytest.mark.slow  # simulates the demo's lab (~15 s) and merges twice
-def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():
+def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():  # simulates the demo's lab (~15 s), merges 3 times
     """``octomerge demo``'s job with ``refine="icp+dense"``: the dense alignment, started at the
     level of ICP's last correspondence distance, brings ICP's result (0.106 m) within a quarter
     voxel (0.020 m measured). Run from the coarsest level it had carried ICP's result 0.33 m /
