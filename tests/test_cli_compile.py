@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from octomerge_jax import kernel_store
+from octomerge_jax.budget import memory_budget
 from octomerge_jax.cli import compile_ahead as ahead
 from octomerge_jax.cli.cache import FAST_COMPILE_FLAGS, FAST_COMPILE_JAXLIB, fast_compile_flags, use_fast_compile
 from octomerge_jax.kernel_store import stored_jit
@@ -88,7 +89,7 @@ def calls(monkeypatch):
 
 
 def test_the_rest_of_the_merge_runs_ahead_when_the_registration_compiles(store, calls):
-    m = SimpleNamespace(resolution=0.1)
+    m = SimpleNamespace(resolution=0.1, capacity=1024)
     T = np.eye(4)
     T[0, 3] = 2.0
     with ahead.compile_ahead(m, m, T, MergeConfig()):
@@ -102,8 +103,12 @@ def test_the_rest_of_the_merge_runs_ahead_when_the_registration_compiles(store, 
     with ahead.compile_ahead(m, m, None, MergeConfig()):
         REGISTRATION_KERNEL(np.arange(3.0))  # loaded from the store: warm, nothing starts
     assert len(calls) == 1
-    with ahead.compile_ahead(m, SimpleNamespace(resolution=0.2), T, MergeConfig()):
+    with ahead.compile_ahead(m, SimpleNamespace(resolution=0.2, capacity=1024), T, MergeConfig()):
         REGISTRATION_KERNEL(np.arange(5.0))  # map 2 is resampled first: not worked ahead
+    assert len(calls) == 1
+    with memory_budget(4 * 2 * 1024 * ahead.BYTES_PER_ROW - 1):
+        with ahead.compile_ahead(m, m, T, MergeConfig()):
+            REGISTRATION_KERNEL(np.arange(6.0))  # would need more than its share of the budget
     assert len(calls) == 1
 
 
@@ -112,7 +117,7 @@ def test_work_ahead_that_fails_is_dropped(store, monkeypatch):
         raise MemoryError("over the budget")
 
     monkeypatch.setattr(ahead, "transform_and_fuse", fail)
-    m = SimpleNamespace(resolution=0.1)
+    m = SimpleNamespace(resolution=0.1, capacity=1024)
     with ahead.compile_ahead(m, m, None, MergeConfig()):
         assert int(REGISTRATION_KERNEL(np.arange(3.0))[1]) == 2
 

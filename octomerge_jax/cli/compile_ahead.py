@@ -16,11 +16,16 @@ from ..kernel_store import compile_listener
 from ..map import OccupancyMap
 from ..pipeline import MergeConfig, Timings, transform_and_fuse
 
-__all__ = ["compile_ahead", "SHARE_OF_BUDGET", "UNGUESSED_YAW_RAD"]
+__all__ = ["compile_ahead", "BYTES_PER_ROW", "SHARE_OF_BUDGET", "UNGUESSED_YAW_RAD"]
 
 SHARE_OF_BUDGET = 0.25
 """The share of the memory budget (``budget.current_budget``) the work ahead may take; a pair
 that needs more is not worked ahead."""
+
+BYTES_PER_ROW = 512
+"""The work ahead's peak memory per leaf row of the two maps' capacities [bytes]: a cold
+``transform_and_fuse`` of the campus pair (2 x 524,288 rows) raised the process's peak by
+513 MB, compiling included."""
 
 UNGUESSED_YAW_RAD = 0.5
 """The turn (about the z axis through the origin) the work ahead moves map 2 by when the merge
@@ -38,10 +43,12 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     guess; ``None``: a turn by ``UNGUESSED_YAW_RAD``) and drops its result. Its programs'
     shapes are bucketed, so they are the ones the real merge needs unless the final transform
     changes a bucket; the real merge then loads them, or waits for the thread compiling them,
-    instead of compiling them after the registration. A warm merge starts no thread; work ahead that fails or exceeds
-    ``SHARE_OF_BUDGET`` of the memory budget is dropped silently (the real merge reports its
-    own errors). Maps of two resolutions (resampled by ``merge`` first) are not worked ahead.
-    The block's exit waits for the thread."""
+    instead of compiling them after the registration. A warm merge starts no thread. A pair
+    whose work ahead would need more than ``SHARE_OF_BUDGET`` of the memory budget
+    (``BYTES_PER_ROW`` per row of both maps' capacities), and maps of two resolutions
+    (resampled by ``merge`` first), are not worked ahead; work ahead that fails, or allocates
+    over that share, is dropped silently (the real merge reports its own errors). The block's
+    exit waits for the thread."""
     threads: list[threading.Thread] = []
     budget = int(current_budget() * SHARE_OF_BUDGET)
     T = se3.from_xyz_rpy(0.0, 0.0, 0.0, 0.0, 0.0, UNGUESSED_YAW_RAD, xp=np) if T_1_2 is None \
@@ -56,7 +63,8 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
             threads.append(threading.Thread(target=work, name="octomerge-compile-ahead", daemon=True))
             threads[0].start()
 
-    if not math.isclose(m1.resolution, m2.resolution, rel_tol=1e-9):
+    if not math.isclose(m1.resolution, m2.resolution, rel_tol=1e-9) or \
+            (m1.capacity + m2.capacity) * BYTES_PER_ROW > budget:
         yield
         return
     try:
