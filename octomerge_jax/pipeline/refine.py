@@ -213,8 +213,7 @@ def dense_after_icp(m1, m2, clouds: Clouds, T_icp, T_1_2_init, info: dict, confi
     guess; if that fails too, ``T_icp`` is kept and both failures go to ``warnings``. Returns
     ``(T_1_2, info with the dense figures under "dense")``."""
     retry: list[str] = []
-    refining = info["converged"] or info["status"] == str(Status.MAX_ITERATIONS)
-    within = info["correspondence_distance"] if refining else None
+    within = info["correspondence_distance"] if Status[info["status"].upper()].usable else None
     T_1_2, dense_info, _ = refine_dense(m1, m2, T_icp, timings, retry, within_m=within)
     if not Status(dense_info["status"]).usable:
         T_1_2, dense_info, _ = refine_dense(m1, m2, T_1_2_init, timings, retry)
