@@ -18,6 +18,8 @@ from octomerge_jax.cli.cache import FAST_COMPILE_FLAGS, FAST_COMPILE_JAXLIB, fas
 from octomerge_jax.kernel_store import stored_jit
 from octomerge_jax.pipeline import MergeConfig
 
+from helpers import own_kernel_store
+
 
 def test_fast_compile_flags_are_added_and_the_users_own_setting_wins():
     (flag,) = FAST_COMPILE_FLAGS
@@ -65,14 +67,8 @@ OTHER_KERNEL = stored_jit(_thrice)
 @pytest.fixture
 def store(tmp_path):
     """A store of the test's own (the run's, tests/conftest.py, is put back after)."""
-    for k in (REGISTRATION_KERNEL, OTHER_KERNEL):
-        k._loaded.clear()
-    run_store = kernel_store.store_dir()
-    kernel_store.open_store(tmp_path / "kernels")
-    yield tmp_path / "kernels"
-    kernel_store.close_store()
-    if run_store is not None:
-        kernel_store.open_store(run_store)
+    with own_kernel_store(tmp_path / "kernels", [REGISTRATION_KERNEL, OTHER_KERNEL]) as path:
+        yield path
 
 
 @pytest.fixture

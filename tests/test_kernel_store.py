@@ -17,6 +17,8 @@ import pytest
 from octomerge_jax import kernel_store
 from octomerge_jax.kernel_store import stored_jit
 
+from helpers import own_kernel_store
+
 
 def solve_sorted(a, b, *, scale: int):
     """LAPACK (a solve), a sort and an iota: the kinds of program whose loaded copies crashed or
@@ -33,13 +35,8 @@ B = np.arange(6, dtype=np.float32)
 @pytest.fixture
 def store(tmp_path):
     """A store of the test's own (the run's, tests/conftest.py, is put back after)."""
-    STORED._loaded.clear()  # programs this process already holds are not read or written again
-    run_store = kernel_store.store_dir()
-    kernel_store.open_store(tmp_path / "kernels")
-    yield tmp_path / "kernels"
-    kernel_store.close_store()
-    if run_store is not None:
-        kernel_store.open_store(run_store)
+    with own_kernel_store(tmp_path / "kernels", [STORED]) as path:
+        yield path
 
 
 @pytest.fixture
