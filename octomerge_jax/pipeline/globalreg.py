@@ -7,10 +7,12 @@ guess is given): ``register_global``; and the verdict on a local ICP result, ``j
         level each map by its floors; yaw peaks of the wall-normal histograms (each + pi)
         per yaw: FFT cross-correlation of the coarse occupancy grids, less free-space
                  conflicts ──> a few translations                ──> ~18 poses
-        net agreement on the coarse cells (agree - 3 x conflict, both directions)
+        net agreement on the coarse cells (agree - 3 x conflict, both directions; a cell is
+        free when a quarter of it is seen free and it holds no surface)
         ──> top distinct poses, and the best once nudged by half cells
         ──ICP on the commonly mapped subsets (thesis Alg. 2-3)
-        ──> net agreement again: best, second-best distinct pose ──> verdict, confidence
+        ──> net agreement again: best (ICP once more from it, on the subsets at its result),
+            second-best distinct pose ──> verdict, confidence
 
 Verdict (``Registration.info["verdict"]``, the merge's ``MergeReport.status``): ``"ok"``;
 ``"ambiguous"`` when a distinct second pose agrees nearly as well (symmetric rooms,
@@ -38,9 +40,9 @@ from .. import se3
 from ..map import OccupancyMap, bucket_capacity
 from ..registration import Status
 from ..registration.features import cell_codes, coarse_cloud, coarse_voxel_size, neighbor_pairs, normals
-from ..registration.global_search import (cell_sets, consistency_score, distinct_poses, free_points, horizontal_pinning,
-                                          level_rotation, net_agreement, nudge_poses, pose_distance, rotation_z,
-                                          translation_candidates, yaw_candidates)
+from ..registration.global_search import (consistency_score, distinct_poses, free_space, horizontal_pinning,
+                                          level_rotation, map_cell_sets, net_agreement, nudge_poses,
+                                          pose_distance, rotation_z, translation_candidates, yaw_candidates)
 from .clouds import icp_info, icp_kwargs, occupied_clouds, overlap_margin, select_overlap, stage_epsilon
 from .config import MergeConfig
 from .report import MergeError, Registration
@@ -119,12 +121,13 @@ def _search_poses(m1, m2, p1, p2, resolution: float, timings: Timings):
     v_corr = max(v, float(np.cbrt(np.prod(span) / _MAX_CORRELATION_CELLS)))
     poses, scores = [], []
     with timings.stage("correlation"):
-        f1 = free_points(m1, v_corr) @ L1.T
-        f2 = free_points(m2, v_corr)
+        f1, w1 = free_space(m1, v_corr)
+        f2, w2 = free_space(m2, v_corr)
+        f1 = f1 @ L1.T
         for yaw in yaws:
             R = rotation_z(yaw) @ L2
-            t, sc = translation_candidates(a, c2.points @ R.T, v_corr, f1, f2 @ R.T,
-                                           num_peaks=_TRANSLATION_PEAKS)
+            t, sc = translation_candidates(a, c2.points @ R.T, v_corr, f1, f2 @ R.T, num_peaks=_TRANSLATION_PEAKS,
+                                           free_volumes_1=w1, free_volumes_2=w2)
             for ti, si in zip(t, sc):
                 T = np.eye(4)
                 T[:3, :3] = L1.T @ R
@@ -177,8 +180,7 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         return _nothing(p1, p2, T_1_2_init, counts, info_g)
     extent = max(float(np.linalg.norm(np.ptp(c2.points, axis=0))) / 2.0, v)
     with timings.stage("verify"):
-        s1 = cell_sets(p1, free_points(m1, v), v)
-        s2 = cell_sets(p2, free_points(m2, v), v)
+        s1, s2 = map_cell_sets(p1, m1, v), map_cell_sets(p2, m2, v)
         screened = np.array([net_agreement(s1, s2, T, CONFLICT_WEIGHT) for T in T_all], np.float64)
         picked = list(distinct_poses(T_all, screened, extent, 2.0 * v, _NUM_REFINED))
         # and the best after half-cell nudges, if another: a pose a third of a cell off ranks low
@@ -193,6 +195,15 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     rank = np.argsort(-final, kind="stable")
     i_best = int(rank[0])
     best = refined[i_best]
+    # ICP again from the best, on the commonly mapped subsets at its result: those of the
+    # candidate's coarse pose may hold two minima a few hundredths of a radian apart
+    again = _refine(p1, p2, best.T_1_2, best.index, config, resolution, timings) if best.result is not None else None
+    if again is not None and again.result is not None and Status(int(again.result.status)).usable:
+        with timings.stage("verify"):
+            a, c = consistency_score(s1, s2, again.T_1_2)
+        if a - CONFLICT_WEIGHT * c > final[i_best]:
+            refined[i_best], agree_conflict[i_best], final[i_best] = again, (a, c), a - CONFLICT_WEIGHT * c
+            best = again
     seconds = [int(j) for j in rank[1:] if pose_distance(refined[j].T_1_2, best.T_1_2, extent) >= 2.0 * v]
     top_score = max(final[i_best], 1.0)
     gap = float((final[i_best] - final[seconds[0]]) / top_score) if seconds else 1.0
@@ -203,6 +214,7 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         n_in, explained = explained_fraction(p1, p2, best.T_1_2, 2.0 * resolution, config)
         pinning = horizontal_pinning(s1, s2, best.T_1_2, _NORMAL_RADIUS * v)
     usable = best.result is not None and Status(int(best.result.status)).usable
+    conflict_ratio = conflict / max(agree, 1)
     confidence = _confidence(gap, shared, pinning)
     if shared < MIN_SHARED or explained < MIN_EXPLAINED:
         verdict = "no_overlap"
@@ -215,7 +227,7 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     info_g.update(cells=[int(s1.occupied.codes.shape[0]), int(s2.occupied.codes.shape[0])],
                   screened=[round(float(x), 1) for x in screened[picked]], agree=agree, conflict=conflict,
                   shared=round(shared, 4), explained=round(explained, 4), explained_points=n_in, gap=round(gap, 4),
-                  pinning=round(pinning, 2))
+                  pinning=round(pinning, 2), conflict_ratio=round(conflict_ratio, 4))
     info = {**(icp_info(best.result) if best.result is not None else _no_icp()), "verdict": verdict, "global": info_g}
     candidates = tuple({"T_1_2": np.asarray(refined[j].T_1_2).tolist(),
                         "score": round(float(final[j]) / max(cells, 1), 5), "agree": agree_conflict[j][0],
@@ -298,7 +310,7 @@ def judge_local(m1: OccupancyMap, m2: OccupancyMap, clouds, registration: Regist
     p1, p2 = clouds
     v = coarse_voxel_size(lambda v: 0, m1.resolution)
     with timings.stage("verify"):
-        agree, conflict = consistency_score(cell_sets(p1, free_points(m1, v), v), cell_sets(p2, free_points(m2, v), v),
+        agree, conflict = consistency_score(map_cell_sets(p1, m1, v), map_cell_sets(p2, m2, v),
                                             registration.T_1_2)
     fitness = float(info.get("fitness", 0.0))
     bad = fitness < MIN_LOCAL_FITNESS or agree - CONFLICT_WEIGHT * conflict <= 0

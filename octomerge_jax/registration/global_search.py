@@ -11,13 +11,15 @@ by a 3-D cross-correlation of the coarse occupancy grids (FFT), a few peaks per 
   is left to the verification by free space to reject.
 - ``translation_candidates``: the occupied coarse cells of both maps as 0/1 grids, their
   cross-correlation by FFT, the highest peaks (non-maximum suppressed): overlapping surface
-  cells per translation.
+  cells per translation, less those put into the other map's free space.
+- ``cell_sets`` / ``consistency_score``: a pose's agreeing and conflicting coarse cells; a cell
+  is free space only when its map saw a good part of it free (``MIN_FREE_FRACTION``).
 
 The idea is the classic one of rotation from orientation histograms and translation from
 phase-free correlation (e.g. Bosse and Zlot, "Map matching and data association for large-scale
-two-dimensional laser scan-based SLAM", IJRR 2008); see
-``docs/design.md``, "Guess-free registration: measured choice". Host NumPy: a few thousand coarse points and FFTs of at most
-a few million cells.
+two-dimensional laser scan-based SLAM", IJRR 2008); see ``docs/design.md``, "Guess-free
+registration: measured choice". Host NumPy: a few thousand coarse points and FFTs of at most a
+few million cells.
 """
 
 from __future__ import annotations
@@ -29,9 +31,9 @@ import numpy as np
 from ..map import OccupancyMap
 from .features import CoarseCloud, cell_codes, coarse_cloud, neighbor_pairs, normals
 
-__all__ = ["CellSets", "cell_sets", "consistency_score", "distinct_poses", "free_points", "horizontal_pinning",
-           "level_rotation", "net_agreement", "nudge_poses", "pose_distance", "rotation_z", "translation_candidates",
-           "yaw_candidates"]
+__all__ = ["CellSets", "MIN_FREE_FRACTION", "cell_sets", "consistency_score", "distinct_poses", "free_points",
+           "free_space", "horizontal_pinning", "level_rotation", "map_cell_sets", "net_agreement", "nudge_poses",
+           "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates"]
 
 _YAW_BINS = 180  # over [0, pi): 1 degree
 
@@ -102,14 +104,28 @@ def _grid(points, voxel: float, lo: np.ndarray, shape) -> np.ndarray:
     return g
 
 
-def _free_grid(points, occupied, voxel: float, lo: np.ndarray) -> np.ndarray:
-    """1 in the free cells of the grid of ``occupied`` (those without occupied weight)."""
-    g = np.zeros(occupied.shape, np.float32)
+def _free_grid(points, occupied, voxel: float, lo: np.ndarray, volumes=None) -> np.ndarray:
+    """1 in the free cells of the grid of ``occupied`` (those without occupied weight; with
+    ``volumes (f,)`` [m^3] of the free ``points``, those at least ``MIN_FREE_FRACTION`` seen
+    free, as ``cell_sets``)."""
     k = np.floor(np.asarray(points, np.float64) / voxel).astype(np.int64) - lo
     inside = np.all((k >= 0) & (k < np.asarray(occupied.shape)), axis=1)
     k = k[inside]
-    g[k[:, 0], k[:, 1], k[:, 2]] = 1.0
+    if volumes is None:
+        g = np.zeros(occupied.shape, np.float32)
+        g[k[:, 0], k[:, 1], k[:, 2]] = 1.0
+    else:
+        seen = np.zeros(occupied.shape, np.float64)
+        np.add.at(seen, (k[:, 0], k[:, 1], k[:, 2]), np.asarray(volumes, np.float64)[inside])
+        g = (seen >= MIN_FREE_FRACTION * _seen_throughout(seen[seen > 0])).astype(np.float32)
     return np.where(occupied > 0, 0.0, g).astype(np.float32)
+
+
+def _seen_throughout(volumes) -> float:
+    """The free volume [m^3] of a coarse cell that its map saw free throughout: the 90th
+    percentile over the cells holding free space (a map's free space may be sampled sparsely)."""
+    v = np.asarray(volumes, np.float64)
+    return float(np.percentile(v, 90)) if v.size else 0.0
 
 
 def free_points(m: OccupancyMap, voxel: float, max_points: int = 4_000_000) -> np.ndarray:
@@ -117,10 +133,16 @@ def free_points(m: OccupancyMap, voxel: float, max_points: int = 4_000_000) -> n
     occupancy threshold) at about one per cell of ``voxel`` [m]: a leaf's centre, or for a
     leaf larger than ``voxel`` the centres of its ``round(size / voxel)^3`` sub-cells. Raises
     ``ValueError`` above ``max_points`` points."""
+    return free_space(m, voxel, max_points)[0]
+
+
+def free_space(m: OccupancyMap, voxel: float, max_points: int = 4_000_000) -> tuple[np.ndarray, np.ndarray]:
+    """``(points (k, 3) float64 [m], volumes (k,) float64 [m^3])``: ``free_points`` and the
+    free volume each point stands for (its leaf's, or sub-cell's). Raises as ``free_points``."""
     L = m.leaves()
     free = L.log_odds < m.params.occupancy_threshold_log_odds
     centers, sizes = L.centers[free], L.sizes[free]
-    out = []
+    out, volumes = [], []
     for size in np.unique(sizes):
         c = centers[sizes == size]
         k = max(1, int(round(size / voxel)))
@@ -129,16 +151,21 @@ def free_points(m: OccupancyMap, voxel: float, max_points: int = 4_000_000) -> n
         g = (np.arange(k) + 0.5) * (size / k) - size / 2
         off = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
         out.append((c[:, None, :] + off[None]).reshape(-1, 3))
-    return np.concatenate(out) if out else np.zeros((0, 3))
+        volumes.append(np.full(c.shape[0] * k ** 3, (float(size) / k) ** 3))
+    if not out:
+        return np.zeros((0, 3)), np.zeros((0,))
+    return np.concatenate(out), np.concatenate(volumes)
 
 
-def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2=None, num_peaks: int = 3, min_separation_cells: int = 3,
-                           max_cells: int = 1 << 23):
+def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2=None, num_peaks: int = 3,
+                           min_separation_cells: int = 3, max_cells: int = 1 << 23, free_volumes_1=None,
+                           free_volumes_2=None):
     """Translations ``t (k, 3)`` [m] that place ``points_2 (n2, 3)`` onto ``points_1 (n1, 3)``
     (both [m], one orientation) with the most occupied coarse cells (edge ``voxel`` [m]) in
-    common, less
-    the occupied cells of one map that land in the other's free space (``free_* (f, 3)`` [m],
-    in the same frames, optional; ``free_points``), and those scores ``(k,)``: the ``k <= num_peaks`` highest peaks of the grids'
+    common, less the occupied cells of one map that land in the other's free space
+    (``free_* (f, 3)`` [m], in the same frames, optional; ``free_points``; with
+    ``free_volumes_* (f,)`` [m^3] from ``free_space``, free cells as ``cell_sets`` counts
+    them), and those scores ``(k,)``: the ``k <= num_peaks`` highest peaks of the grids'
     cross-correlation (FFT), at least ``min_separation_cells`` apart (Chebyshev), best first.
     Raises ``ValueError`` when the padded grid would exceed ``max_cells`` cells."""
     points_1 = np.asarray(points_1, np.float64).reshape(-1, 3)
@@ -155,9 +182,9 @@ def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2
     # corr[d] = sum_x g1[x + d] g2[x]: map 2's cell x lands on map 1's cell x + d
     spec = g1 * np.conj(g2)
     if free_1 is not None:
-        spec -= np.fft.rfftn(_free_grid(free_1, o1, voxel, lo1), shape, axes=(0, 1, 2)) * np.conj(g2)
+        spec -= np.fft.rfftn(_free_grid(free_1, o1, voxel, lo1, free_volumes_1), shape, axes=(0, 1, 2)) * np.conj(g2)
     if free_2 is not None:
-        spec -= g1 * np.conj(np.fft.rfftn(_free_grid(free_2, o2, voxel, lo2), shape, axes=(0, 1, 2)))
+        spec -= g1 * np.conj(np.fft.rfftn(_free_grid(free_2, o2, voxel, lo2, free_volumes_2), shape, axes=(0, 1, 2)))
     corr = np.fft.irfftn(spec, shape, axes=(0, 1, 2))
     flat = np.argsort(-corr, axis=None)[: 64 * num_peaks]
     shifts, scores = [], []
@@ -183,12 +210,33 @@ class CellSets(NamedTuple):
     free_codes: np.ndarray  # (f,) int64 sorted codes of free cells that hold no occupied point
 
 
-def cell_sets(points, free, voxel: float) -> CellSets:
+#: a coarse cell is free when at least this share of its volume is known free (``cell_sets``)
+MIN_FREE_FRACTION = 0.25
+
+
+def cell_sets(points, free, voxel: float, free_volumes=None,
+              min_free_fraction: float = MIN_FREE_FRACTION) -> CellSets:
     """``CellSets`` of occupied ``points (n, 3)`` and free-space points ``free (f, 3)`` [m]
-    (``free_points``) on a grid of ``voxel`` [m]."""
+    (``free_points``) on a grid of ``voxel`` [m]. With ``free_volumes (f,)`` [m^3]
+    (``free_space``), a cell without occupied points is free only when its free points' volume
+    is at least ``min_free_fraction`` of the cell's: a cell that a sensor saw only in part
+    (rays grazing the ground between sparse lidar rings, the air above a surface in a cell
+    that also holds it) refutes nothing. Without volumes every cell holding a free point is."""
     occ = coarse_cloud(points, voxel)
-    codes = np.unique(cell_codes(np.floor(np.asarray(free, np.float64) / voxel).astype(np.int64)))
-    return CellSets(occ, codes[~np.isin(codes, occ.codes)])
+    codes, inverse = np.unique(cell_codes(np.floor(np.asarray(free, np.float64) / voxel).astype(np.int64)),
+                               return_inverse=True)
+    keep = ~np.isin(codes, occ.codes)
+    if free_volumes is not None:
+        volume = np.bincount(inverse.ravel(), np.asarray(free_volumes, np.float64), minlength=codes.shape[0])
+        keep &= volume >= float(min_free_fraction) * _seen_throughout(volume)
+    return CellSets(occ, codes[keep])
+
+
+def map_cell_sets(points, m: OccupancyMap, voxel: float) -> CellSets:
+    """``cell_sets`` of a map's occupied ``points (n, 3)`` [m] and its free space
+    (``free_space``, volumes counted) on a grid of ``voxel`` [m]."""
+    free, volumes = free_space(m, voxel)
+    return cell_sets(points, free, voxel, volumes)
 
 
 def net_agreement(s1: CellSets, s2: CellSets, T_1_2, conflict_weight: float) -> float:
