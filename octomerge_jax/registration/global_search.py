@@ -17,9 +17,9 @@ by a 3-D cross-correlation of the coarse occupancy grids (FFT), a few peaks per 
 
 The idea is the classic one of rotation from orientation histograms and translation from
 phase-free correlation (e.g. Bosse and Zlot, "Map matching and data association for large-scale
-two-dimensional laser scan-based SLAM", IJRR 2008); see ``docs/design.md``, "Guess-free
-registration: measured choice". Host NumPy: a few thousand coarse points and FFTs of at most a
-few million cells.
+two-dimensional laser scan-based SLAM", IJRR 2008); see
+``docs/design.md``, "Guess-free registration: measured choice". Host NumPy: a few thousand
+coarse points and FFTs of at most a few million cells.
 """
 
 from __future__ import annotations
