@@ -115,8 +115,9 @@ def _free_grid(points, occupied, voxel: float, lo: np.ndarray, volumes=None) -> 
         g = np.zeros(occupied.shape, np.float32)
         g[k[:, 0], k[:, 1], k[:, 2]] = 1.0
     else:
-        seen = np.zeros(occupied.shape, np.float64)
-        np.add.at(seen, (k[:, 0], k[:, 1], k[:, 2]), np.asarray(volumes, np.float64)[inside])
+        cell = np.ravel_multi_index((k[:, 0], k[:, 1], k[:, 2]), occupied.shape)
+        seen = np.bincount(cell, np.asarray(volumes, np.float64)[inside], minlength=occupied.size)
+        seen = seen.reshape(occupied.shape)
         g = (seen >= MIN_FREE_FRACTION * _seen_throughout(seen[seen > 0])).astype(np.float32)
     return np.where(occupied > 0, 0.0, g).astype(np.float32)
 
