@@ -49,9 +49,10 @@ def test_translation_correlation_finds_a_shift():
 
 
 def test_a_cell_seen_free_in_part_refutes_nothing():
-    """A coarse cell counts as free when at least ``MIN_FREE_FRACTION`` of its volume is seen
-    free (``free_space``'s volumes): one grazing ray's worth of free voxels in a cell that
-    holds map 1's ground is no conflict; a cell seen free throughout is."""
+    """A coarse cell counts as free when its free volume (``free_space``'s volumes) is at least
+    ``MIN_FREE_FRACTION`` of what the map's fully seen cells hold: one grazing ray's worth of
+    free voxels in a cell that holds map 1's ground is no conflict; a cell seen free throughout
+    is."""
     v, r = 1.0, 0.1
     ground = np.array([[0.55, 0.55, 0.05], [2.55, 0.55, 0.05]])  # map 1: surface in cells (0,0,0) and (2,0,0)
     # map 2: its own surface far away, one row of free voxels in cell (0,0,0), cell (2,0,0) all free

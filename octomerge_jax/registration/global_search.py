@@ -211,7 +211,8 @@ class CellSets(NamedTuple):
     free_codes: np.ndarray  # (f,) int64 sorted codes of free cells that hold no occupied point
 
 
-#: a coarse cell is free when at least this share of its volume is known free (``cell_sets``)
+#: a coarse cell is free when its free volume is at least this share of what the map's fully seen cells hold
+#: (``cell_sets``)
 MIN_FREE_FRACTION = 0.25
 
 
@@ -220,9 +221,11 @@ def cell_sets(points, free, voxel: float, free_volumes=None,
     """``CellSets`` of occupied ``points (n, 3)`` and free-space points ``free (f, 3)`` [m]
     (``free_points``) on a grid of ``voxel`` [m]. With ``free_volumes (f,)`` [m^3]
     (``free_space``), a cell without occupied points is free only when its free points' volume
-    is at least ``min_free_fraction`` of the cell's: a cell that a sensor saw only in part
-    (rays grazing the ground between sparse lidar rings, the air above a surface in a cell
-    that also holds it) refutes nothing. Without volumes every cell holding a free point is."""
+    is at least ``min_free_fraction`` of what the map's cells seen free throughout hold (the
+    90th percentile over the cells holding free points, so a map whose free space is sampled
+    sparsely keeps its free cells): a cell that a sensor saw only in part (rays grazing the
+    ground between sparse lidar rings, the air above a surface in a cell that also holds it)
+    refutes nothing. Without volumes every cell holding a free point is."""
     occ = coarse_cloud(points, voxel)
     codes, inverse = np.unique(cell_codes(np.floor(np.asarray(free, np.float64) / voxel).astype(np.int64)),
                                return_inverse=True)
