@@ -70,9 +70,23 @@ def test_a_cell_seen_free_in_part_refutes_nothing():
     assert 0.0 < MIN_FREE_FRACTION < 1.0
 
 
+def test_a_map_without_free_space_refutes_no_translation():
+    """Free space given with volumes but empty (a map of occupied voxels only) makes no cell
+    free: the correlation equals the one without free space."""
+    rng = np.random.default_rng(0)
+    p = rng.uniform(0, 4, (3000, 3))
+    t0 = np.array([1.3, -2.1, 0.4])
+    none = np.zeros((0, 3)), np.zeros((0,))
+    t, score = translation_candidates(p, p - t0, 0.25, none[0], none[0], num_peaks=2, free_volumes_1=none[1],
+                                      free_volumes_2=none[1])
+    t_ref, score_ref = translation_candidates(p, p - t0, 0.25, num_peaks=2)
+    np.testing.assert_allclose(t, t_ref)
+    np.testing.assert_allclose(score, score_ref, atol=1e-6)
+
+
 def test_free_space_volumes_fill_the_free_leaves():
-    """``free_space``: the points of ``free_points`` and the volume each stands for; their sum
-    is the free leaves' volume."""
+    """``free_space``: points filling the free leaves and the volume each stands for; their
+    sum is the free leaves' volume."""
     m = small_room_map((-1.0, 3.0), RES)
     for voxel in (0.25, 1.0):
         pts, vol = free_space(m, voxel)

@@ -31,8 +31,8 @@ import numpy as np
 from ..map import OccupancyMap
 from .features import CoarseCloud, cell_codes, coarse_cloud, neighbor_pairs, normals
 
-__all__ = ["CellSets", "MIN_FREE_FRACTION", "cell_sets", "consistency_score", "distinct_poses", "free_points",
-           "free_space", "horizontal_pinning", "level_rotation", "map_cell_sets", "net_agreement", "nudge_poses",
+__all__ = ["CellSets", "MIN_FREE_FRACTION", "cell_sets", "consistency_score", "distinct_poses", "free_space",
+           "horizontal_pinning", "level_rotation", "map_cell_sets", "net_agreement", "nudge_poses",
            "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates"]
 
 _YAW_BINS = 180  # over [0, pi): 1 degree
@@ -117,29 +117,27 @@ def _free_grid(points, occupied, voxel: float, lo: np.ndarray, volumes=None) -> 
     else:
         cell = np.ravel_multi_index((k[:, 0], k[:, 1], k[:, 2]), occupied.shape)
         seen = np.bincount(cell, np.asarray(volumes, np.float64)[inside], minlength=occupied.size)
-        seen = seen.reshape(occupied.shape)
-        g = (seen >= MIN_FREE_FRACTION * _seen_throughout(seen[seen > 0])).astype(np.float32)
+        g = _seen_free(seen.reshape(occupied.shape), MIN_FREE_FRACTION).astype(np.float32)
     return np.where(occupied > 0, 0.0, g).astype(np.float32)
 
 
-def _seen_throughout(volumes) -> float:
-    """The free volume [m^3] of a coarse cell that its map saw free throughout: the 90th
-    percentile over the cells holding free space (a map's free space may be sampled sparsely)."""
-    v = np.asarray(volumes, np.float64)
-    return float(np.percentile(v, 90)) if v.size else 0.0
-
-
-def free_points(m: OccupancyMap, voxel: float, max_points: int = 4_000_000) -> np.ndarray:
-    """Points ``(k, 3)`` float64 [m] filling the map's free leaves (log-odds below the
-    occupancy threshold) at about one per cell of ``voxel`` [m]: a leaf's centre, or for a
-    leaf larger than ``voxel`` the centres of its ``round(size / voxel)^3`` sub-cells. Raises
-    ``ValueError`` above ``max_points`` points."""
-    return free_space(m, voxel, max_points)[0]
+def _seen_free(volume, fraction: float) -> np.ndarray:
+    """Which cells of ``volume`` (the free volume [m^3] each holds; any shape) count as free:
+    those holding at least ``fraction`` of what the map's cells seen free throughout hold (the
+    90th percentile over the cells holding free space: a map's free space may be sampled
+    sparsely). None without free space."""
+    held = volume[volume > 0]
+    if held.size == 0:
+        return np.zeros(volume.shape, bool)
+    return (volume > 0) & (volume >= float(fraction) * float(np.percentile(held, 90)))
 
 
 def free_space(m: OccupancyMap, voxel: float, max_points: int = 4_000_000) -> tuple[np.ndarray, np.ndarray]:
-    """``(points (k, 3) float64 [m], volumes (k,) float64 [m^3])``: ``free_points`` and the
-    free volume each point stands for (its leaf's, or sub-cell's). Raises as ``free_points``."""
+    """``(points (k, 3) float64 [m], volumes (k,) float64 [m^3])``: points filling the map's
+    free leaves (log-odds below the occupancy threshold) at about one per cell of ``voxel``
+    [m] (a leaf's centre, or for a leaf larger than ``voxel`` the centres of its
+    ``round(size / voxel)^3`` sub-cells) and the free volume each stands for (its leaf's, or
+    sub-cell's). Raises ``ValueError`` above ``max_points`` points."""
     L = m.leaves()
     free = L.log_odds < m.params.occupancy_threshold_log_odds
     centers, sizes = L.centers[free], L.sizes[free]
@@ -164,7 +162,7 @@ def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2
     """Translations ``t (k, 3)`` [m] that place ``points_2 (n2, 3)`` onto ``points_1 (n1, 3)``
     (both [m], one orientation) with the most occupied coarse cells (edge ``voxel`` [m]) in
     common, less the occupied cells of one map that land in the other's free space
-    (``free_* (f, 3)`` [m], in the same frames, optional; ``free_points``; with
+    (``free_* (f, 3)`` [m], in the same frames, optional; ``free_space``'s points; with
     ``free_volumes_* (f,)`` [m^3] from ``free_space``, free cells as ``cell_sets`` counts
     them), and those scores ``(k,)``: the ``k <= num_peaks`` highest peaks of the grids'
     cross-correlation (FFT), at least ``min_separation_cells`` apart (Chebyshev), best first.
@@ -219,7 +217,7 @@ MIN_FREE_FRACTION = 0.25
 def cell_sets(points, free, voxel: float, free_volumes=None,
               min_free_fraction: float = MIN_FREE_FRACTION) -> CellSets:
     """``CellSets`` of occupied ``points (n, 3)`` and free-space points ``free (f, 3)`` [m]
-    (``free_points``) on a grid of ``voxel`` [m]. With ``free_volumes (f,)`` [m^3]
+    (``free_space``'s points) on a grid of ``voxel`` [m]. With ``free_volumes (f,)`` [m^3]
     (``free_space``), a cell without occupied points is free only when its free points' volume
     is at least ``min_free_fraction`` of what the map's cells seen free throughout hold (the
     90th percentile over the cells holding free points, so a map whose free space is sampled
@@ -232,7 +230,7 @@ def cell_sets(points, free, voxel: float, free_volumes=None,
     keep = ~np.isin(codes, occ.codes)
     if free_volumes is not None:
         volume = np.bincount(inverse.ravel(), np.asarray(free_volumes, np.float64), minlength=codes.shape[0])
-        keep &= volume >= float(min_free_fraction) * _seen_throughout(volume)
+        keep &= _seen_free(volume, min_free_fraction)
     return CellSets(occ, codes[keep])
 
 
