@@ -99,6 +99,11 @@ class _Refined(NamedTuple):
     overlap: tuple  # (q1 (k1, 3), q2 (k2, 3)) float32 commonly mapped subsets [m]
     index: int  # row of the coarse candidates
 
+    @property
+    def usable(self) -> bool:
+        """ICP ran and ended with a usable ``Status``."""
+        return self.result is not None and Status(int(self.result.status)).usable
+
 
 def _pad(q, cap: int) -> np.ndarray:
     return np.concatenate([q, np.zeros((cap - q.shape[0], 3), np.float32)])
@@ -198,7 +203,7 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     # ICP again from the best, on the commonly mapped subsets at its result: those of the
     # candidate's coarse pose may hold two minima a few hundredths of a radian apart
     again = _refine(p1, p2, best.T_1_2, best.index, config, resolution, timings) if best.result is not None else None
-    if again is not None and again.result is not None and Status(int(again.result.status)).usable:
+    if again is not None and again.usable:
         with timings.stage("verify"):
             a, c = consistency_score(s1, s2, again.T_1_2)
         if a - CONFLICT_WEIGHT * c > final[i_best]:
@@ -213,12 +218,11 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     with timings.stage("verify"):
         n_in, explained = explained_fraction(p1, p2, best.T_1_2, 2.0 * resolution, config)
         pinning = horizontal_pinning(s1, s2, best.T_1_2, _NORMAL_RADIUS * v)
-    usable = best.result is not None and Status(int(best.result.status)).usable
     conflict_ratio = conflict / max(agree, 1)
     confidence = _confidence(gap, shared, pinning)
     if shared < MIN_SHARED or explained < MIN_EXPLAINED:
         verdict = "no_overlap"
-    elif not usable:
+    elif not best.usable:
         verdict = "failed"
     else:
         trusted = (gap >= AMBIGUOUS_GAP and confidence >= MIN_CONFIDENCE and shared >= MIN_SHARED_OK
