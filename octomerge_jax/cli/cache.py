@@ -19,8 +19,8 @@ _OFF = ("", "off", "0", "none")
 
 FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
 """XLA flags every ``octomerge`` process compiles with: XLA:CPU's classic fusion emitters, which
-compile a merge's programs ~25 % faster than the MLIR ones at the same run time (figures:
-docs/design.md, "XLA flags of the command line"). Ignored on other backends."""
+compile a merge's programs faster than the MLIR ones at the same run time (docs/design.md,
+"XLA flags of the command line"). Ignored on other backends."""
 
 FAST_COMPILE_JAXLIB = ("0.10.",)
 """Prefixes of the jaxlib versions whose XLA is known to have ``FAST_COMPILE_FLAGS``: XLA aborts

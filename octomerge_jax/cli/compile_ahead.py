@@ -23,9 +23,8 @@ SHARE_OF_BUDGET = 0.25
 that needs more is not worked ahead."""
 
 BYTES_PER_ROW = 512
-"""The work ahead's peak memory per leaf row of the two maps' capacities [bytes]: a cold
-``transform_and_fuse`` of the campus pair (2 x 524,288 rows) raised the process's peak by
-513 MB, compiling included."""
+"""The work ahead's peak memory per leaf row of the two maps' capacities [bytes], compiling
+included (measured: docs/design.md, "Compiling the merge's later kernels during the registration")."""
 
 UNGUESSED_YAW_RAD = 0.5
 """The turn (about the z axis through the origin) the work ahead moves map 2 by when the merge
