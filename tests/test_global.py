@@ -3,6 +3,7 @@ confidence, the verdict on a local ICP in a wrong basin, and the CLI's exit code
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -13,7 +14,9 @@ from octomerge_jax import registration as reg
 from octomerge_jax import se3
 from octomerge_jax.cli import main
 from octomerge_jax.io import save
-from octomerge_jax.pipeline import MergeConfig, merge, merge_batch, register_global, transform_from_xyz_rpy
+from octomerge_jax.pipeline import (MergeConfig, Registration, Timings, dense_after_global, merge, merge_batch,
+                                    register_global, transform_from_xyz_rpy)
+from octomerge_jax.pipeline.clouds import occupied_clouds
 from octomerge_jax.registration.features import coarse_cloud, neighbor_pairs, normals
 from octomerge_jax.registration.global_search import (MIN_FREE_FRACTION, cell_sets, consistency_score, free_space,
                                                       level_rotation, nudge_poses, pose_distance,
@@ -153,7 +156,28 @@ def test_merge_without_guess_is_global(room):
     d = json.loads(rep.to_json())
     assert "confidence" in d and isinstance(d["candidates"], list) and len(d["candidates"][0]["T_1_2"]) == 4
     if rep.status == "ok":
-        assert rep.epsilon_r < 0.05
+        assert rep.epsilon_r < 0.05 and "dense" in rep.icp
+
+
+def test_guess_free_mode_ends_with_the_dense_step(room):
+    """``refine="global"``'s last step: from a found pose 0.1 m / 0.02 rad off with verdict
+    "ok", the dense alignment moves it closer to the truth and reports its figures; a pose
+    with verdict "no_overlap" is returned as found."""
+    T_true = transform_from_xyz_rpy(0.6, -0.4, 0.0, 0.0, 0.0, 2.4)
+    m1, m2 = _room_pair(room, T_true)
+    start = T_true @ transform_from_xyz_rpy(0.08, -0.06, 0.0, 0.0, 0.0, 0.02)
+    clouds = occupied_clouds(m1, m2, Timings())
+    info = {"verdict": "ok", "status": "converged", "correspondence_distance": 2 * RES}
+    found = Registration(T_1_2=start, converged=True, info=info, result=object(), counts={},
+                         points_1=clouds.points_1, points_2=clouds.points_2, confidence=0.8)
+    polished = dense_after_global(m1, m2, clouds, found, MergeConfig(), Timings())
+    p2 = clouds.points_2.astype(np.float64)
+    before, after = (float(np.mean(reg.point_displacement(T, T_true, p2))) for T in (start, polished.T_1_2))
+    assert before > 0.08 and after < before / 2, (before, after)
+    assert polished.info["dense"]["status"] in (0, 1) and polished.info["dense"]["fitness"] > 0.5
+    assert polished.info["verdict"] == "ok" and polished.confidence == 0.8
+    far = dataclasses.replace(found, info={**info, "verdict": "no_overlap"})
+    assert dense_after_global(m1, m2, clouds, far, MergeConfig(), Timings()) is far
 
 
 @pytest.mark.slow

@@ -59,8 +59,9 @@ class RegistrationConfig:
       picked, then one ICP on the commonly mapped subsets from it, kept if the maps agree
       better; for poor guesses), ``"dense"`` (``registration.align_dense`` only),
       ``"none"`` (trust the guess) or ``"global"`` (no guess needed:
-      ``pipeline.register_global``; what ``merge`` uses when no guess is given and ``refine``
-      is left at its default).
+      ``pipeline.register_global``, then the dense alignment from its result as in
+      ``"icp+dense"``; what ``merge`` uses when no guess is given and ``refine`` is left at
+      its default).
     - ``overlap``: ``"bbox"`` (thesis Alg. 2: intersection of bounding boxes; the default),
       ``"voxel"`` (points near the other map's points under the guess) or ``"none"`` (all
       points).

@@ -201,7 +201,8 @@ def merge(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init=None, refine: str | Non
         (``None``: no guess: unless ``refine`` is given or the config sets another mode than
         the default ``"icp+dense"`` or ``"icp"``, the transform is searched for,
         ``refine="global"``; see ``transform_from_xyz_rpy``).
-      refine: ``"global"`` (no guess needed; status ``"ambiguous"`` / ``"no_overlap"`` /
+      refine: ``"global"`` (no guess needed, ending with the dense alignment; status
+        ``"ambiguous"`` / ``"no_overlap"`` /
         ``"failed"`` when the result is not to be trusted), ``"icp+dense"`` (the default from a
         guess: ICP, then the dense alignment; sub-voxel), ``"icp"``, ``"multi"``
         (multi-hypothesis search for poor guesses), ``"dense"``

@@ -10,7 +10,7 @@ into the transform used, per ``config.registration.refine``, one function per mo
 - ``"dense"``: ``align_dense`` (the occupancy fields, gradient-based; ``register_dense``);
 - ``"icp+dense"``: ICP, then the dense alignment from its result (``dense_after_icp``);
 - ``"global"``: no guess needed (``globalreg.register_global``; the default of ``merge``
-  without a guess).
+  without a guess), then the dense alignment from its ICP result (``dense_after_global``).
 
 The ICP modes' results are judged by ``globalreg.judge_local`` (a wrong basin: ``"failed"``).
 
@@ -20,6 +20,7 @@ transform that did not come from ICP gets them measured at it (``point_stats``).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import numpy as np
@@ -36,7 +37,7 @@ from .ranking import rank_and_refine
 from .report import MergeError, Registration
 from .timings import Timings
 
-__all__ = ["DenseStep", "Overlap", "accept_icp", "dense_after_icp", "overlap_for_icp", "refine_dense", "register",
+__all__ = ["DenseStep", "Overlap", "accept_icp", "dense_after_global", "dense_after_icp", "overlap_for_icp", "refine_dense", "register",
            "register_dense", "register_icp", "register_multi", "register_none"]
 
 
@@ -75,7 +76,8 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
     if refine == "multi":
         return register_multi(m1, m2, clouds, T_1_2_init, config, timings)
     if refine == "global":
-        return register_global(m1, m2, config, T_1_2_init, timings)
+        return dense_after_global(m1, m2, clouds, register_global(m1, m2, config, T_1_2_init, timings),
+                                  config, timings)
     overlap = overlap_for_icp(clouds, T_1_2_init, config, m1.resolution, timings)
     with timings.stage("icp") as stage:
         result = stage.ready(reg.icp(overlap.points_2, overlap.points_1, T_1_2_init,
@@ -225,6 +227,28 @@ def dense_after_icp(m1, m2, clouds: Clouds, T_icp, T_1_2_init, info: dict, confi
         with timings.stage("evaluate"):
             dense_info.update(point_stats(clouds.points_1, clouds.points_2, T_1_2, config, m1.resolution))
     return T_1_2, {**info, "dense": dense_info}
+
+
+def dense_after_global(m1, m2, clouds: Clouds, found: Registration, config: MergeConfig,
+                       timings: Timings) -> Registration:
+    """``refine="global"``'s last step: the dense alignment from the pose ``register_global``
+    found (``found``), at the levels within its ICP's last correspondence distance, as
+    ``"icp+dense"`` ends (``docs/design.md``, "Dense alignment ends the guess-free mode").
+    Run when the verdict is ``"ok"`` or ``"ambiguous"`` and ICP ended usable; its result is
+    used when usable (the point statistics measured there, ``info["dense"]``), else ``found``
+    is returned with a warning. Verdict, confidence and candidates stay ``found``'s."""
+    info = found.info or {}
+    if info.get("verdict") not in ("ok", "ambiguous") or found.result is None \
+            or not Status[info["status"].upper()].usable:
+        return found
+    warnings = list(found.warnings)
+    T_1_2, dense_info, _ = refine_dense(m1, m2, found.T_1_2, timings, warnings,
+                                        within_m=info["correspondence_distance"])
+    if Status(dense_info["status"]).usable:
+        with timings.stage("evaluate"):
+            dense_info.update(point_stats(clouds.points_1, clouds.points_2, T_1_2, config, m1.resolution))
+    return dataclasses.replace(found, T_1_2=se3.project_to_rigid(T_1_2), info={**info, "dense": dense_info},
+                               warnings=tuple(warnings))
 
 
 def refine_dense(m1, m2, T_start, timings: Timings, warnings: list[str],
