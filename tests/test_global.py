@@ -73,6 +73,35 @@ def test_a_cell_seen_free_in_part_refutes_nothing():
     assert 0.0 < MIN_FREE_FRACTION < 1.0
 
 
+def test_grids_offset_so_the_ground_lies_mid_cell():
+    """The same ground and wall voxelised by two maps whose lattices put the ground one fine
+    voxel apart (z = +0.05 and -0.05 m): with coarse grids at the frames' origin the ground lies
+    on a face and one map's ground cells land in the other's free cells above; with the grids
+    offset by ``lattice_origin`` the truth agrees everywhere and conflicts nowhere."""
+    r, v = 0.1, 1.0
+    g = (np.arange(60) + 0.5) * r
+    gx, gy = np.meshgrid(g, g, indexing="ij")
+    wall_y, wall_z = np.meshgrid(g, g[:30], indexing="ij")
+    wall = np.stack([np.full(wall_y.size, 3.05), wall_y.ravel(), wall_z.ravel()], -1)
+    fx, fy, fz = np.meshgrid(g, g, np.arange(0.35, 2.0, r), indexing="ij")
+    free = np.stack([fx.ravel(), fy.ravel(), fz.ravel()], -1)
+    free = free[np.abs(free[:, 0] - 3.05) > 2 * r]
+    vol = np.full(free.shape[0], r ** 3)
+
+    def sets(ground_z, origin=None):
+        ground = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, ground_z)], -1)
+        return cell_sets(np.concatenate([ground, wall]), free, v, vol, origin=origin)
+
+    zero = np.zeros(3)
+    agree0, conflict0 = consistency_score(sets(0.05, zero), sets(-0.05, zero), np.eye(4))
+    assert conflict0 >= 30  # the 6 x 5 ground cells beside the wall land in the other map's free cells
+    a, b = sets(0.05), sets(-0.05)
+    for s_, z in ((a, 0.05), (b, -0.05)):  # the ground about half a cell from a face
+        assert 0.4 <= ((z - s_.origin[2]) / v) % 1.0 <= 0.6, s_.origin
+    agree, conflict = consistency_score(a, b, np.eye(4))
+    assert conflict == 0 and agree == a.occupied.codes.shape[0] > agree0
+
+
 def test_a_map_without_free_space_refutes_no_translation():
     """Free space given with volumes but empty (a map of occupied voxels only) makes no cell
     free: the correlation equals the one without free space."""

@@ -8,7 +8,8 @@ guess is given): ``register_global``; and the verdict on a local ICP result, ``j
         per yaw: FFT cross-correlation of the coarse occupancy grids, less free-space
                  conflicts ──> a few translations                ──> ~18 poses
         net agreement on the coarse cells (agree - 3 x conflict, both directions; a cell is
-        free when a quarter of it is seen free and it holds no surface)
+        free when a quarter of it is seen free and it holds no surface; each map's grid offset
+        so that its floor lies mid-cell)
         ──> top distinct poses, and the best once nudged by half cells
         ──ICP on the commonly mapped subsets (thesis Alg. 2-3)
         ──> net agreement again: best (ICP once more from it, on the subsets at its result),
@@ -18,8 +19,9 @@ Verdict (``Registration.info["verdict"]``, the merge's ``MergeReport.status``): 
 ``"ambiguous"`` when a distinct second pose agrees nearly as well (symmetric rooms,
 corridors), the confidence is below ``MIN_CONFIDENCE``, the net shared share below
 ``MIN_SHARED_OK`` (so little overlap that another placement, e.g. beside map 1 sharing a wall,
-is about as consistent) or the surfaces both maps agree on pin the pose horizontally by fewer
-than ``MIN_PINNING_CELLS`` (``horizontal_pinning``: it may slide along them); ``"no_overlap"``
+is about as consistent), the surfaces both maps agree on pin the pose horizontally by fewer
+than ``MIN_PINNING_CELLS`` (``horizontal_pinning``: it may slide along them) or more than
+``MAX_CONFLICT_RATIO`` of its agreeing cells' count conflict with free space; ``"no_overlap"``
 when the best pose explains too little of the smaller map;
 ``"failed"`` when its ICP did not end usable. Maps are assumed gravity-aligned to within a
 few degrees (``registration.global_search``). The thresholds are calibrated on the benchmark
@@ -48,8 +50,8 @@ from .config import MergeConfig
 from .report import MergeError, Registration
 from .timings import Timings
 
-__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MIN_CONFIDENCE", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS",
-           "MIN_PINNING_CELLS", "MIN_SHARED", "MIN_SHARED_OK", "explained_fraction",
+__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MAX_CONFLICT_RATIO", "MIN_CONFIDENCE", "MIN_EXPLAINED",
+           "MIN_LOCAL_FITNESS", "MIN_PINNING_CELLS", "MIN_SHARED", "MIN_SHARED_OK", "explained_fraction",
            "judge_local", "register_global"]
 
 #: a distinct second pose whose net agreement is within this share of the best's: "ambiguous"
@@ -68,6 +70,10 @@ MIN_SHARED_OK = 0.2
 #: the surfaces both maps agree on at the best pose pin it horizontally by fewer coarse cells than this
 #: (``horizontal_pinning``): at most "ambiguous", it may slide (a corridor, maps side by side sharing a wall)
 MIN_PINNING_CELLS = 8.0
+#: conflicting over agreeing coarse cells at the best pose above which it is at most "ambiguous": right poses
+#: conflict on up to 4 % (docs/design.md), a room turned by pi or a map placed where it has no common region on 12 %
+#: and more
+MAX_CONFLICT_RATIO = 0.08
 #: a local ICP result whose fitness (inliers over map 2's commonly mapped points) is below: "failed"
 MIN_LOCAL_FITNESS = 0.3
 _NORMAL_RADIUS = 2.0  # [coarse cells]
@@ -219,15 +225,15 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         n_in, explained = explained_fraction(p1, p2, best.T_1_2, 2.0 * resolution, config)
         pinning = horizontal_pinning(s1, s2, best.T_1_2, _NORMAL_RADIUS * v)
     conflict_ratio = conflict / max(agree, 1)
-    confidence = _confidence(gap, shared, pinning)
+    confidence = _confidence(gap, shared, pinning, conflict_ratio)
+    doubts: list[str] = []
     if shared < MIN_SHARED or explained < MIN_EXPLAINED:
         verdict = "no_overlap"
     elif not best.usable:
         verdict = "failed"
     else:
-        trusted = (gap >= AMBIGUOUS_GAP and confidence >= MIN_CONFIDENCE and shared >= MIN_SHARED_OK
-                   and pinning >= MIN_PINNING_CELLS)
-        verdict = "ok" if trusted else "ambiguous"
+        doubts = _doubts(gap, shared, pinning, conflict_ratio, confidence)
+        verdict = "ambiguous" if doubts else "ok"
     info_g.update(cells=[int(s1.occupied.codes.shape[0]), int(s2.occupied.codes.shape[0])],
                   screened=[round(float(x), 1) for x in screened[picked]], agree=agree, conflict=conflict,
                   shared=round(shared, 4), explained=round(explained, 4), explained_points=n_in, gap=round(gap, 4),
@@ -238,20 +244,25 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
                         "conflict": agree_conflict[j][1]} for j in [i_best, *seconds])
     q1, q2 = best.overlap
     counts.update(overlap_1=int(q1.shape[0]), overlap_2=int(q2.shape[0]))
-    warnings = () if verdict == "ok" else (_MESSAGES[verdict].format(frac=explained, gap=gap, shared=shared),)
+    if verdict == "ambiguous":
+        warnings = ("ambiguous: " + "; ".join(doubts) + "; give a guess (--xyz/--rpy) to choose",)
+    else:
+        warnings = () if verdict == "ok" else (_MESSAGES[verdict].format(frac=explained, shared=shared),)
     return Registration(T_1_2=best.T_1_2, converged=bool(info["converged"]), info=info, result=best.result,
                         counts=counts, points_1=q1, points_2=q2, warnings=warnings, confidence=confidence,
                         candidates=candidates)
 
 
-def _confidence(gap: float, shared: float, pinning: float) -> float:
+def _confidence(gap: float, shared: float, pinning: float, conflict_ratio: float) -> float:
     """In [0, 1]: the margin over the second-best distinct pose (saturating at 4x the
     ambiguity gap) times how far the net shared share clears its no-overlap bound (saturating
-    at 3x) times how firmly the pose is pinned (0 at ``MIN_PINNING_CELLS``, 1 from twice it)."""
+    at 3x) times how firmly the pose is pinned (0 at ``MIN_PINNING_CELLS``, 1 from twice it)
+    times how little of it conflicts (1 up to half ``MAX_CONFLICT_RATIO``, 0 from it on)."""
     margin = np.clip(gap / (4.0 * AMBIGUOUS_GAP), 0.0, 1.0)
     share = np.clip((shared - MIN_SHARED) / (2.0 * MIN_SHARED), 0.0, 1.0)
     pinned = np.clip(pinning / MIN_PINNING_CELLS - 1.0, 0.0, 1.0)
-    return float(margin * share * pinned)
+    clean = np.clip(2.0 - 2.0 * conflict_ratio / MAX_CONFLICT_RATIO, 0.0, 1.0)
+    return float(margin * share * pinned * clean)
 
 
 def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timings: Timings) -> _Refined:
@@ -277,6 +288,22 @@ def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timin
     return _Refined(np.asarray(T, np.float64), r, (q1, q2), index)
 
 
+def _doubts(gap: float, shared: float, pinning: float, conflict_ratio: float, confidence: float) -> list[str]:
+    """Why a usable best pose is not to be trusted (empty: it is), one phrase per failed gate."""
+    doubts = []
+    if gap < AMBIGUOUS_GAP:
+        doubts.append(f"a distinct second pose agrees with map 1 nearly as well (within {gap:.1%}; symmetric scene?)")
+    if shared < MIN_SHARED_OK:
+        doubts.append(f"the maps share little (net {shared:.0%} of the smaller map's coarse cells)")
+    if pinning < MIN_PINNING_CELLS:
+        doubts.append("the shared surfaces leave the pose free to slide horizontally (a corridor?)")
+    if conflict_ratio > MAX_CONFLICT_RATIO:
+        doubts.append(f"surface in the other map's free space on {conflict_ratio:.0%} as many cells as agree")
+    if confidence < MIN_CONFIDENCE and not doubts:
+        doubts.append(f"confidence {confidence:.2f} below {MIN_CONFIDENCE}")
+    return doubts
+
+
 def _no_icp() -> dict:
     return {"converged": False, "status": str(Status.TOO_FEW_INLIERS), "num_iterations": 0, "num_inliers": 0,
             "rmse": float("nan"), "fitness": 0.0, "correspondence_distance": float("nan")}
@@ -293,8 +320,6 @@ def _nothing(p1, p2, T_1_2_init, counts, info_g) -> Registration:
 _MESSAGES = {
     "no_overlap": "no overlap found: the best pose explains {frac:.0%} of the smaller map's occupied voxels "
                   "(net agreement {shared:.0%} of its coarse cells)",
-    "ambiguous": "ambiguous: a distinct second pose agrees with map 1 nearly as well (within {gap:.1%}; "
-                 "symmetric scene?); give a guess (--xyz/--rpy) to choose",
     "failed": "registration failed: ICP from the best pose did not end usable",
 }
 

@@ -13,7 +13,8 @@ by a 3-D cross-correlation of the coarse occupancy grids (FFT), a few peaks per 
   cross-correlation by FFT, the highest peaks (non-maximum suppressed): overlapping surface
   cells per translation, less those put into the other map's free space.
 - ``cell_sets`` / ``consistency_score``: a pose's agreeing and conflicting coarse cells; a cell
-  is free space only when its map saw a good part of it free (``MIN_FREE_FRACTION``).
+  is free space only when its map saw a good part of it free (``MIN_FREE_FRACTION``), and each
+  map's grid is offset so that its cell faces avoid its dense planes (``lattice_origin``).
 
 The idea is the classic one of rotation from orientation histograms and translation from
 phase-free correlation (e.g. Bosse and Zlot, "Map matching and data association for large-scale
@@ -32,7 +33,7 @@ from ..map import OccupancyMap
 from .features import CoarseCloud, cell_codes, coarse_cloud, neighbor_pairs, normals
 
 __all__ = ["CellSets", "MIN_FREE_FRACTION", "cell_sets", "consistency_score", "distinct_poses", "free_space",
-           "horizontal_pinning", "level_rotation", "map_cell_sets", "net_agreement", "nudge_poses",
+           "horizontal_pinning", "lattice_origin", "level_rotation", "map_cell_sets", "net_agreement", "nudge_poses",
            "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates"]
 
 _YAW_BINS = 180  # over [0, pi): 1 degree
@@ -203,10 +204,36 @@ def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2
 
 
 class CellSets(NamedTuple):
-    """A map's occupied and free cells on a coarse grid (``cell_sets``)."""
+    """A map's occupied and free cells on a coarse grid (``cell_sets``) whose cell corners lie
+    at ``origin + k voxel`` in the map's frame."""
 
-    occupied: CoarseCloud  # one point per occupied cell (centroids, sorted codes)
+    occupied: CoarseCloud  # one point per occupied cell (centroids less origin, sorted codes)
     free_codes: np.ndarray  # (f,) int64 sorted codes of free cells that hold no occupied point
+    origin: np.ndarray  # (3,) float64 [m]: the grid's offset, lattice_origin of the occupied points
+
+
+def lattice_origin(points, voxel: float, bins: int = 24) -> np.ndarray:
+    """``(3,)`` float64 [m]: per axis, the offset in ``[0, voxel)`` of a grid of ``voxel`` [m]
+    whose cell faces lie farthest from ``points (n, 3)`` [m]: of ``bins`` offsets, the one
+    minimising the points' summed closeness to a face (1 on it, falling linearly to 0 half a
+    cell away). The ground or floor, the most populated plane, then lies mid-cell instead of
+    wherever the frame's origin happens to put it: on a face, the other map's copy of it
+    (voxelised on its own lattice, up to a voxel apart) splits between the cell below and the
+    free one above, and the truth itself loses agreement and gains conflicts
+    (``docs/design.md``, "Guess-free registration: measured choice")."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    origin = np.zeros(3)
+    if p.shape[0] == 0:
+        return origin
+    frac = np.mod(p / float(voxel), 1.0)
+    half = bins // 2
+    k = np.arange(-half, half)
+    closeness = 1.0 - np.abs(k + 0.5) / half  # of the bin k bins past a face
+    for a in range(3):
+        h = np.bincount(np.minimum((frac[:, a] * bins).astype(np.int64), bins - 1), minlength=bins)
+        cost = sum(c * np.roll(h, -j) for j, c in zip(k, closeness))  # cost[b]: a face at b / bins
+        origin[a] = float(np.argmin(cost)) / bins * float(voxel)
+    return origin
 
 
 #: a coarse cell is free when its free volume is at least this share of what the map's fully seen cells hold
@@ -215,7 +242,7 @@ MIN_FREE_FRACTION = 0.25
 
 
 def cell_sets(points, free, voxel: float, free_volumes=None,
-              min_free_fraction: float = MIN_FREE_FRACTION) -> CellSets:
+              min_free_fraction: float = MIN_FREE_FRACTION, origin=None) -> CellSets:
     """``CellSets`` of occupied ``points (n, 3)`` and free-space points ``free (f, 3)`` [m]
     (``free_space``'s points) on a grid of ``voxel`` [m]. With ``free_volumes (f,)`` [m^3]
     (``free_space``), a cell without occupied points is free only when its free points' volume
@@ -223,15 +250,18 @@ def cell_sets(points, free, voxel: float, free_volumes=None,
     90th percentile over the cells holding free points, so a map whose free space is sampled
     sparsely keeps its free cells): a cell that a sensor saw only in part (rays grazing the
     ground between sparse lidar rings, the air above a surface in a cell that also holds it)
-    refutes nothing. Without volumes every cell holding a free point is."""
-    occ = coarse_cloud(points, voxel)
-    codes, inverse = np.unique(cell_codes(np.floor(np.asarray(free, np.float64) / voxel).astype(np.int64)),
-                               return_inverse=True)
+    refutes nothing. Without volumes every cell holding a free point is. ``origin (3,)`` [m]:
+    the grid's offset (default ``lattice_origin`` of ``points``)."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    origin = lattice_origin(points, voxel) if origin is None else np.asarray(origin, np.float64).reshape(3)
+    occ = coarse_cloud(points - origin, voxel)
+    free = np.asarray(free, np.float64).reshape(-1, 3) - origin
+    codes, inverse = np.unique(cell_codes(np.floor(free / voxel).astype(np.int64)), return_inverse=True)
     keep = ~np.isin(codes, occ.codes)
     if free_volumes is not None:
         volume = np.bincount(inverse.ravel(), np.asarray(free_volumes, np.float64), minlength=codes.shape[0])
         keep &= _seen_free(volume, min_free_fraction)
-    return CellSets(occ, codes[keep])
+    return CellSets(occ, codes[keep], origin)
 
 
 def map_cell_sets(points, m: OccupancyMap, voxel: float) -> CellSets:
@@ -296,15 +326,19 @@ def consistency_score(s1: CellSets, s2: CellSets, T_1_2) -> tuple[int, int]:
     1, and occupied cells of either map landing in the other's free cells (both directions):
     the measure the translation correlation maximises (``agree - conflict``), at any pose."""
     T = np.asarray(T_1_2, np.float64)
-    v = s1.occupied.voxel
-    q = s2.occupied.points @ T[:3, :3].T + T[:3, 3]
-    c = cell_codes(np.floor(q / v).astype(np.int64))
+    c = _placed_codes(s2, s1, T)
     agree = int(_member(s1.occupied.codes, c).sum())
     conflict = int(_member(s1.free_codes, c).sum())
-    Ti = np.linalg.inv(T)
-    r = s1.occupied.points @ Ti[:3, :3].T + Ti[:3, 3]
-    conflict += int(_member(s2.free_codes, cell_codes(np.floor(r / v).astype(np.int64))).sum())
+    conflict += int(_member(s2.free_codes, _placed_codes(s1, s2, np.linalg.inv(T))).sum())
     return agree, conflict
+
+
+def _placed_codes(source: CellSets, target: CellSets, T_target_source) -> np.ndarray:
+    """Codes of the cells of ``target``'s grid that ``source``'s occupied cells (their
+    centroids) land in under ``T_target_source (4, 4)``."""
+    T = T_target_source
+    q = (source.occupied.points + source.origin) @ T[:3, :3].T + T[:3, 3] - target.origin
+    return cell_codes(np.floor(q / target.occupied.voxel).astype(np.int64))
 
 
 def horizontal_pinning(s1: CellSets, s2: CellSets, T_1_2, radius: float) -> float:
@@ -320,9 +354,7 @@ def horizontal_pinning(s1: CellSets, s2: CellSets, T_1_2, radius: float) -> floa
     c1 = s1.occupied
     if c1.codes.shape[0] == 0 or s2.occupied.codes.shape[0] == 0:
         return 0.0
-    T = np.asarray(T_1_2, np.float64)
-    q = s2.occupied.points @ T[:3, :3].T + T[:3, 3]
-    at, found = _lookup(c1.codes, cell_codes(np.floor(q / c1.voxel).astype(np.int64)))
+    at, found = _lookup(c1.codes, _placed_codes(s2, s1, np.asarray(T_1_2, np.float64)))
     shared = np.unique(at[found])
     n, ok = normals(c1, neighbor_pairs(c1, radius))
     h = n[shared][ok[shared], :2]
