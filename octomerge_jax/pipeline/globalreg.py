@@ -77,7 +77,7 @@ MAX_CONFLICT_RATIO = 0.08
 #: a local ICP result whose fitness (inliers over map 2's commonly mapped points) is below: "failed"
 MIN_LOCAL_FITNESS = 0.3
 _NORMAL_RADIUS = 2.0  # [coarse cells]
-_YAW_PEAKS, _TRANSLATION_PEAKS = 3, 3  # yaw peaks (each also turned by pi) x translation peaks per yaw
+_YAW_PEAKS, _TRANSLATION_PEAKS = 3, 6  # yaw peaks (each also turned by pi) x translation peaks per yaw
 _MAX_CORRELATION_CELLS = 1 << 21  # the correlation grid's cells (padded): its cell grows to fit
 _NUM_REFINED = 3  # distinct poses of the highest net agreement refined by ICP (all: see docs/design.md)
 

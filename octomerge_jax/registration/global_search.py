@@ -168,8 +168,12 @@ def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2
     them), and those scores ``(k,)``: the ``k <= num_peaks`` highest peaks of the grids'
     cross-correlation (FFT), at least ``min_separation_cells`` apart (Chebyshev), best first.
     Raises ``ValueError`` when the padded grid would exceed ``max_cells`` cells."""
-    points_1 = np.asarray(points_1, np.float64).reshape(-1, 3)
-    points_2 = np.asarray(points_2, np.float64).reshape(-1, 3)
+    # each grid offset so that its dense planes lie mid-cell (``lattice_origin``); t is shifted back below
+    shift_1, shift_2 = lattice_origin(points_1, voxel), lattice_origin(points_2, voxel)
+    points_1 = np.asarray(points_1, np.float64).reshape(-1, 3) - shift_1
+    points_2 = np.asarray(points_2, np.float64).reshape(-1, 3) - shift_2
+    free_1 = None if free_1 is None else np.asarray(free_1, np.float64).reshape(-1, 3) - shift_1
+    free_2 = None if free_2 is None else np.asarray(free_2, np.float64).reshape(-1, 3) - shift_2
     c1, c2 = coarse_cloud(points_1, voxel), coarse_cloud(points_2, voxel)
     lo1, lo2 = c1.keys.min(axis=0), c2.keys.min(axis=0)
     s1 = c1.keys.max(axis=0) - lo1 + 1
@@ -199,7 +203,7 @@ def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2
                 break
     d = np.asarray(shifts, np.int64).reshape(-1, 3)
     # cell lo2 + j of map 2 lands on cell lo1 + j + d of map 1
-    t = (d + lo1 - lo2).astype(np.float64) * voxel
+    t = (d + lo1 - lo2).astype(np.float64) * voxel + shift_1 - shift_2
     return t, np.asarray(scores, np.float64)
 
 
