@@ -6,7 +6,7 @@ guess is given): ``register_global``; and the verdict on a local ICP result, ``j
     occupied leaf centres ──coarse grid (one point per occupied coarse cell), normals
         level each map by its floors; yaw peaks of the wall-normal histograms (each + pi)
         per yaw: FFT cross-correlation of the coarse occupancy grids, less free-space
-                 conflicts ──> a few translations                ──> ~18 poses
+                 conflicts ──> six translations per yaw          ──> ~36 poses
         net agreement on the coarse cells (agree - 3 x conflict, both directions; a cell is
         free when a quarter of it is seen free and it holds no surface; each map's grid offset
         so that its floor lies mid-cell)
