@@ -22,8 +22,9 @@ __all__ = [
     "ManyReport", "MapReport",
     "HYPOTHESES_CHOICES", "MergeConfig", "MergeError", "MergeReport", "ON_NOT_CONVERGED_CHOICES",
     "OVERLAP_CHOICES", "REFINE_CHOICES", "Registration", "RegistrationConfig", "Timings", "TransformConfig",
-    "VOXEL_OVERLAP_VOXELS", "check_resolutions", "config_from_dict", "config_to_dict", "dumps_toml", "icp_trace",
-    "dense_after_global", "judge_local", "load_config", "merge", "merge_batch", "merge_many", "overlap_margin", "point_stats",
+    "VOXEL_OVERLAP_VOXELS", "check_resolutions", "config_from_dict", "config_to_dict", "dense_after_global",
+    "dumps_toml", "icp_trace", "judge_local", "load_config", "merge", "merge_batch", "merge_many", "overlap_margin",
+    "point_stats",
     "rank_by_map_agreement", "register", "register_global", "resample_to_resolution", "save_config",
     "transform_and_fuse", "transform_from_xyz_rpy", "validate",
     "stage_listener",  # --- bags (progress)

@@ -37,8 +37,8 @@ from .ranking import rank_and_refine
 from .report import MergeError, Registration
 from .timings import Timings
 
-__all__ = ["DenseStep", "Overlap", "accept_icp", "dense_after_global", "dense_after_icp", "overlap_for_icp", "refine_dense", "register",
-           "register_dense", "register_icp", "register_multi", "register_none"]
+__all__ = ["DenseStep", "Overlap", "accept_icp", "dense_after_global", "dense_after_icp", "overlap_for_icp",
+           "refine_dense", "register", "register_dense", "register_icp", "register_multi", "register_none"]
 
 
 class Overlap(NamedTuple):
@@ -223,9 +223,7 @@ def dense_after_icp(m1, m2, clouds: Clouds, T_icp, T_1_2_init, info: dict, confi
         if not Status(dense_info["status"]).usable:
             T_1_2 = T_icp
             warnings.extend(retry)
-    if Status(dense_info["status"]).usable:  # its result is used: the point statistics there
-        with timings.stage("evaluate"):
-            dense_info.update(point_stats(clouds.points_1, clouds.points_2, T_1_2, config, m1.resolution))
+    _add_point_stats(dense_info, clouds, T_1_2, config, m1.resolution, timings)
     return T_1_2, {**info, "dense": dense_info}
 
 
@@ -244,11 +242,18 @@ def dense_after_global(m1, m2, clouds: Clouds, found: Registration, config: Merg
     warnings = list(found.warnings)
     T_1_2, dense_info, _ = refine_dense(m1, m2, found.T_1_2, timings, warnings,
                                         within_m=info["correspondence_distance"])
-    if Status(dense_info["status"]).usable:
-        with timings.stage("evaluate"):
-            dense_info.update(point_stats(clouds.points_1, clouds.points_2, T_1_2, config, m1.resolution))
+    _add_point_stats(dense_info, clouds, T_1_2, config, m1.resolution, timings)
     return dataclasses.replace(found, T_1_2=se3.project_to_rigid(T_1_2), info={**info, "dense": dense_info},
                                warnings=tuple(warnings))
+
+
+def _add_point_stats(dense_info: dict, clouds: Clouds, T_1_2, config: MergeConfig, resolution: float,
+                     timings: Timings) -> None:
+    """When the dense result is used (its status usable), ICP's point statistics measured at
+    it (``point_stats``, timed as ``evaluate``) go into ``dense_info``."""
+    if Status(dense_info["status"]).usable:
+        with timings.stage("evaluate"):
+            dense_info.update(point_stats(clouds.points_1, clouds.points_2, T_1_2, config, resolution))
 
 
 def refine_dense(m1, m2, T_start, timings: Timings, warnings: list[str],
