@@ -6,7 +6,7 @@ guess is given): ``register_global``; and the verdict on a local ICP result, ``j
     occupied leaf centres ──coarse grid (one point per occupied coarse cell), normals
         level each map by its floors; yaw peaks of the wall-normal histograms (each + pi)
         per yaw: FFT cross-correlation of the coarse occupancy grids, less free-space
-                 conflicts ──> six translations per yaw          ──> ~36 poses
+                 conflicts ──> six translations per yaw          ──> ~48 poses
         net agreement on the coarse cells (agree - 3 x conflict, both directions; a cell is
         free when a quarter of it is seen free and it holds no surface; each map's grid offset
         so that its floor lies mid-cell)
@@ -77,7 +77,7 @@ MAX_CONFLICT_RATIO = 0.08
 #: a local ICP result whose fitness (inliers over map 2's commonly mapped points) is below: "failed"
 MIN_LOCAL_FITNESS = 0.3
 _NORMAL_RADIUS = 2.0  # [coarse cells]
-_YAW_PEAKS, _TRANSLATION_PEAKS = 3, 6  # yaw peaks (each also turned by pi) x translation peaks per yaw
+_YAW_PEAKS, _TRANSLATION_PEAKS = 4, 6  # yaw peaks (each also turned by pi) x translation peaks per yaw
 _MAX_CORRELATION_CELLS = 1 << 21  # the correlation grid's cells (padded): its cell grows to fit
 _NUM_REFINED = 3  # distinct poses of the highest net agreement refined by ICP (all: see docs/design.md)
 
