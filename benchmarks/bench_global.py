@@ -1,6 +1,6 @@
 """Registration without a guess: ours (``register`` with ``refine="global"``, what ``merge`` runs
-without a guess: ``register_global`` and the dense step from its result) vs KISS-Matcher + small_gicp GICP vs Open3D FPFH + RANSAC + ICP, same clouds, same cases,
-one run.
+without a guess: ``register_global`` and the dense step from its result) vs KISS-Matcher +
+small_gicp GICP vs Open3D FPFH + RANSAC + ICP, same clouds, same cases, one run.
 
 Maps: the simulated two-robot pairs (``sim.make_two_robot_maps``, built in one frame and saved
 as ``.bt`` under ``--maps``; built here when missing). Each case turns map 2 into a new frame by
@@ -103,11 +103,6 @@ def open3d_ransac_icp(p1, p2, res):
     return np.asarray(icp.transformation)
 
 
-def displacement(T, T_true, points) -> float:
-    """Mean distance [m] between ``points (n, 3)`` placed by ``T`` and by ``T_true``."""
-    return float(np.mean(np.linalg.norm(points @ (T[:3, :3] - T_true[:3, :3]).T + (T[:3, 3] - T_true[:3, 3]), axis=1)))
-
-
 def run_ours(m1, m2c, cfg):
     tm = Timings()
     r = register(m1, m2c, None, cfg, tm)
@@ -161,7 +156,7 @@ def main():
                 else:
                     T, dt = timed(peers[m][1], p1, p2, args.res)
                 er, et = errors(T, T_true)
-                rows[m].append((scene, er, et, dt, displacement(np.asarray(T, np.float64), T_true, p2)))
+                rows[m].append((scene, er, et, dt, float(np.mean(reg.point_displacement(T, T_true, p2)))))
                 right = er < ROT_OK and et < TRANS_OK
                 if m == "ours":
                     calib.append((conf, verdict, right))
