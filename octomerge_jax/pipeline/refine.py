@@ -232,9 +232,10 @@ def dense_after_global(m1, m2, clouds: Clouds, found: Registration, config: Merg
     """``refine="global"``'s last step: the dense alignment from the pose ``register_global``
     found (``found``), at the levels within its ICP's last correspondence distance, as
     ``"icp+dense"`` ends (``docs/design.md``, "Dense alignment ends the guess-free mode").
-    Run when the verdict is ``"ok"`` or ``"ambiguous"`` and ICP ended usable; its result is
-    used when usable (the point statistics measured there, ``info["dense"]``), else ``found``
-    is returned with a warning. Verdict, confidence and candidates stay ``found``'s."""
+    Run when the verdict is ``"ok"`` or ``"ambiguous"`` and ICP ended usable (otherwise
+    ``found`` is returned as is). Its figures go to ``info["dense"]``; its result is used when
+    usable (with ICP's point statistics measured there), else ``found``'s pose is kept and a
+    warning added. Verdict, confidence and candidates stay ``found``'s."""
     info = found.info or {}
     if info.get("verdict") not in ("ok", "ambiguous") or found.result is None \
             or not Status[info["status"].upper()].usable:
