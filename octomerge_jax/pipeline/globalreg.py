@@ -71,8 +71,8 @@ MIN_SHARED_OK = 0.2
 #: (``horizontal_pinning``): at most "ambiguous", it may slide (a corridor, maps side by side sharing a wall)
 MIN_PINNING_CELLS = 8.0
 #: conflicting over agreeing coarse cells at the best pose above which it is at most "ambiguous": right poses
-#: conflict on up to 4 % (docs/design.md), a room turned by pi or a map placed where it has no common region on 12 %
-#: and more
+#: conflict on far fewer than a room turned by pi or a map placed where it has no common region (figures:
+#: docs/design.md, "Guess-free registration: measured choice")
 MAX_CONFLICT_RATIO = 0.08
 #: a local ICP result whose fitness (inliers over map 2's commonly mapped points) is below: "failed"
 MIN_LOCAL_FITNESS = 0.3
