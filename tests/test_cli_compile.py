@@ -2,12 +2,14 @@
 ``XLA_FLAGS`` kept), and with the merge's later kernels compiled in a second thread while the
 registration compiles (``cli.compile_ahead``)."""
 
+import logging
 import os
 import subprocess
 import sys
 import threading
 from types import SimpleNamespace
 
+import jax
 import numpy as np
 import pytest
 
@@ -17,6 +19,9 @@ from octomerge_jax.cli import compile_ahead as ahead
 from octomerge_jax.cli.cache import FAST_COMPILE_FLAGS, FAST_COMPILE_JAXLIB, fast_compile_flags, use_fast_compile
 from octomerge_jax.kernel_store import stored_jit
 from octomerge_jax.pipeline import MergeConfig
+from octomerge_jax.pipeline.clouds import select_overlap
+from octomerge_jax.registration.global_search import free_space
+from octomerge_jax.sim import small_room_map
 
 from helpers import own_kernel_store
 
@@ -138,3 +143,41 @@ def test_threads_compile_a_kernel_once_and_the_listener_hears_only_fresh_compile
     with kernel_store.compile_listener(heard.append):
         OTHER_KERNEL(np.arange(6.0))  # from the store
     assert len(heard) == 1 and len(list(store.glob("_thrice-*.pkl"))) == 1
+
+
+class _Compiles(logging.Handler):
+    """Counts JAX's "Compiling ..." log records while installed."""
+
+    def __init__(self):
+        super().__init__()
+        self.names: list[str] = []
+
+    def emit(self, record):
+        msg = record.getMessage()
+        if msg.startswith("Compiling "):
+            self.names.append(msg.split(" ")[1])
+
+
+def test_a_new_map_size_in_the_same_bucket_compiles_nothing_new():
+    """The registration's host steps hand the jitted kernels padded clouds and host scalars:
+    a pair of another size (same capacity bucket) must not compile a program per size; in a
+    long run of many pairs (``merge_many``) that exhausted the process's memory maps."""
+    rng = np.random.default_rng(0)
+    rooms = {res: small_room_map((0.0, 3.0), res) for res in (0.2, 0.1)}
+
+    def run(n1, n2, res):
+        p1 = rng.uniform(0, 4, (n1, 3)).astype(np.float32)
+        select_overlap(p1, p1[:n2] + 0.01, np.eye(4), "voxel", 0.3)
+        select_overlap(p1, p1[:n2] + 0.01, np.eye(4), "bbox", None)
+        free_space(rooms[res], 0.6)
+
+    run(700, 600, 0.2)  # compiles
+    seen = _Compiles()
+    logger = logging.getLogger("jax")
+    logger.addHandler(seen)
+    try:
+        with jax.log_compiles(True):
+            run(900, 650, 0.1)  # other sizes, same buckets (1024) and another map size
+    finally:
+        logger.removeHandler(seen)
+    assert seen.names == [], seen.names

@@ -9,7 +9,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .. import registration as reg
-from ..map import OccupancyMap
+from ..map import OccupancyMap, bucket_capacity
 from ..registration import Status
 from .config import MergeConfig
 from .timings import Timings
@@ -51,18 +51,16 @@ def overlap_margin(cfg: MergeConfig, resolution: float) -> float | None:
 def select_overlap(points_1, points_2, T_1_2, method: str, margin: float | None):
     """Overlap subsets ``(q1 (k1, 3), q2 (k2, 3))`` float32 (each in its own frame) of the two
     occupied clouds under ``T_1_2`` (``registration.overlap``, thesis Alg. 2); ``method``
-    ``"none"`` returns the clouds as they are."""
+    ``"none"`` returns the clouds as they are. The clouds go to the jitted kernel padded to
+    their capacity buckets, so one compiled kernel serves every cloud size of a bucket."""
     if method == "none":
         return points_1, points_2
     kw = {} if margin is None else {("radius" if method == "voxel" else "margin"): margin}
-    out = reg.overlap(points_1, points_2, T_1_2, method=method, **kw)
-    q1, q2 = np.asarray(out[0]), np.asarray(out[1])
-    # the registration module may return boolean masks or the subsets themselves
-    if q1.dtype == bool:
-        q1 = np.asarray(points_1)[q1]
-    if q2.dtype == bool:
-        q2 = np.asarray(points_2)[q2]
-    return q1.astype(np.float32), q2.astype(np.float32)
+    p1, n1 = reg.pad_points_host(points_1, bucket_capacity(len(points_1)), "points_1")
+    p2, n2 = reg.pad_points_host(points_2, bucket_capacity(len(points_2)), "points_2")
+    mask_1, mask_2, *_ = reg.overlap(p1, p2, T_1_2, method=method, count_1=n1, count_2=n2, **kw)
+    return (p1[:n1][np.asarray(mask_1)[:n1]].astype(np.float32),
+            p2[:n2][np.asarray(mask_2)[:n2]].astype(np.float32))
 
 
 def icp_kwargs(cfg: MergeConfig, resolution: float) -> dict:
