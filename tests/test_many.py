@@ -11,7 +11,7 @@ from octomerge_jax.registration import rotation_angle_error, translation_distanc
 from octomerge_jax.cli import main
 from octomerge_jax.pipeline import ManyReport, MapReport, merge_many
 from octomerge_jax.pipeline.many_report import tum_lines
-from octomerge_jax.pipeline.pairs import alignment_information, screen_pairs
+from octomerge_jax.pipeline.pairs import alignment_information, more_pairs, screen_pairs
 from octomerge_jax.sim import small_room_map, team_maps, tile_grid
 from octomerge_jax import se3
 
@@ -26,6 +26,19 @@ def test_tile_grid_and_screen_pairs_cost():
     pairs, _ = screen_pairs(maps, 1, all_below=2)  # each map's most similar one only
     assert 2 <= len(pairs) <= 3 and all(i < j for i, j in pairs)
     np.testing.assert_allclose(np.diag(sim), 1.0)
+
+
+def test_more_pairs_offers_an_unplaced_maps_next_most_similar_maps():
+    sim = np.array([[1.0, 0.9, 0.5, 0.1],
+                    [0.9, 1.0, 0.2, 0.3],
+                    [0.5, 0.2, 1.0, 0.8],
+                    [0.1, 0.3, 0.8, 1.0]])
+    # map 3 tried with 2 already: its next are 1, then 0
+    assert more_pairs(sim, [3], [(2, 3), (0, 1)], 1) == [(1, 3)]
+    assert more_pairs(sim, [3], [(2, 3), (0, 1)], 2) == [(0, 3), (1, 3)]
+    assert more_pairs(sim, [2, 3], [(2, 3), (3, 1)], 1) == [(0, 2), (0, 3)]
+    assert more_pairs(sim, [3], [(0, 3), (1, 3), (2, 3)], 4) == []  # every pair of it tried
+    assert more_pairs(sim, [], [], 4) == []
 
 
 def test_alignment_information_is_the_point_to_point_hessian():

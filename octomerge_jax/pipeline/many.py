@@ -6,6 +6,7 @@ graph over all of them).
     maps ──screen_pairs──> candidate pairs        (all pairs, or a coarse-descriptor pre-screen)
          ──measure_pair──> T_i_j, Omega, confidence per pair   (guess-free, or from the guesses)
          ──consensus.choose_candidates──> per pair the candidate pose the other pairs agree with
+           (maps left unplaced: their next most similar maps registered, up to GROW_ROUNDS rounds)
          ──refine locally from it (the configured mode, "icp+dense")
          ──posegraph.solve_robust──> T_0_k, kept / rejected edges, covariances
          ──transform_map (each placed map)──fuse_many──> merged   (one pass, Alg. 8)
@@ -33,7 +34,7 @@ from ..resample import transform_map
 from .config import MergeConfig
 from .many_report import EdgeReport, ManyReport, MapReport
 from .merging import check_resolutions, check_transform, config_with_overrides
-from .pairs import candidate_measurement, measure_pair, screen_pairs
+from .pairs import candidate_measurement, measure_pair, more_pairs, screen_pairs
 from .report import MergeError, MergeReport
 from .timings import Timings
 
@@ -43,6 +44,8 @@ _LOW = 1e-9
 #: two candidate poses of a map agree within this rotation [rad] and translation (voxels, at
 #: least the metres below): wrong candidates of symmetric scenes lie a half turn or a bay away
 CONSENSUS_ROT_RAD, CONSENSUS_TRANS_VOXELS, CONSENSUS_TRANS_MIN_M = 0.1, 5.0, 1.0
+#: rounds of more pairs for the maps the consensus leaves unplaced (from 7 maps on)
+GROW_ROUNDS = 3
 #: the refinements that polish a guess-free edge from its chosen pose (the others leave it)
 LOCAL_REFINES = ("icp", "icp+dense", "dense")
 
@@ -94,6 +97,23 @@ def _sigmas(cov) -> tuple[float | None, float | None]:
             float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))))
 
 
+def _consensus(maps, edges: list[dict], min_confidence: float):
+    """``(pool, Consensus or None)``: the guess-free edges whose ``"ok"`` or ``"ambiguous"``
+    registration has candidate poses, and ``consensus.choose_candidates`` over them (``None``
+    without any)."""
+    pool = [e for e in edges if e.get("meas") is not None and e["meas"].verdict in ("ok", "ambiguous")
+            and e["conf"] >= min_confidence and e["reg"].candidates]
+    if not pool:
+        return pool, None
+    res = float(maps[0].resolution)
+    return pool, consensus.choose_candidates(
+        len(maps), [e["i"] for e in pool], [e["j"] for e in pool],
+        [[np.asarray(c["T_1_2"], np.float64) for c in e["reg"].candidates] for e in pool],
+        [[float(c["score"]) for c in e["reg"].candidates] for e in pool],
+        [e["meas"].verdict == "ok" for e in pool], rot_tol=CONSENSUS_ROT_RAD,
+        trans_tol=max(CONSENSUS_TRANS_VOXELS * res, CONSENSUS_TRANS_MIN_M))
+
+
 def _choose_by_consensus(maps, edges: list[dict], min_confidence: float) -> list[dict]:
     """Guess-free edges: each ``"ok"`` or ``"ambiguous"`` registration's candidate poses go to
     ``consensus.choose_candidates``; an edge keeps the candidate the other pairs agree with
@@ -101,17 +121,9 @@ def _choose_by_consensus(maps, edges: list[dict], min_confidence: float) -> list
     is set aside as ``"inconsistent"`` when its maps are placed and no candidate agrees, or as
     ``"undecided"`` when one of its maps is left unplaced (its pairs disagree: it is not placed
     by one of them). In place; returns the edges that kept a candidate."""
-    pool = [e for e in edges if e.get("meas") is not None and e["meas"].verdict in ("ok", "ambiguous")
-            and e["conf"] >= min_confidence and e["reg"].candidates]
-    if not pool:
+    pool, cons = _consensus(maps, edges, min_confidence)
+    if cons is None:
         return []
-    res = float(maps[0].resolution)
-    cons = consensus.choose_candidates(
-        len(maps), [e["i"] for e in pool], [e["j"] for e in pool],
-        [[np.asarray(c["T_1_2"], np.float64) for c in e["reg"].candidates] for e in pool],
-        [[float(c["score"]) for c in e["reg"].candidates] for e in pool],
-        [e["meas"].verdict == "ok" for e in pool], rot_tol=CONSENSUS_ROT_RAD,
-        trans_tol=max(CONSENSUS_TRANS_VOXELS * res, CONSENSUS_TRANS_MIN_M))
     chosen = []
     for e, c in zip(pool, cons.choice):
         if c >= 0:
@@ -125,6 +137,52 @@ def _choose_by_consensus(maps, edges: list[dict], min_confidence: float) -> list
             k = e["j"] if cons.placed[e["i"]] else e["i"]
             e["why"] = f"undecided: the pairs of map {k} disagree on where it lies"
     return chosen
+
+
+def _register_pairs(maps, pairs, T0_guess, cfg: MergeConfig, min_confidence: float, timings: Timings) -> list[dict]:
+    """One edge per pair ``(i, j)``: map j registered to map i, guess-free without ``T0_guess``
+    (its candidate poses kept under ``figures["candidates"]``, best first: what the consensus
+    chooses from), else from the guesses' ``T_i_j``. An edge that is not ``"ok"`` or below
+    ``min_confidence`` says why."""
+    edges = []
+    for i, j in pairs:
+        t0 = time.perf_counter()
+        T_init = np.eye(4) if T0_guess is None else np.linalg.inv(T0_guess[i]) @ T0_guess[j]
+        try:
+            meas = measure_pair(maps[i], maps[j], T_init, cfg, T0_guess is None, timings)
+        except MergeError as err:
+            edges.append(dict(i=i, j=j, kind="registration", T=None, info=None, conf=None, figures=None,
+                              why=f"registration: {err.kind}: {err}", seconds=time.perf_counter() - t0, reg=None))
+            continue
+        figures = dict(meas.registration.info or {})
+        if T0_guess is None:
+            figures["candidates"] = list(meas.registration.candidates)
+        edges.append(dict(i=i, j=j, kind="registration", T=meas.T_i_j, info=meas.information,
+                          conf=meas.confidence, figures=figures,
+                          why=("" if meas.verdict == "ok" else f"registration {meas.verdict}")
+                          or ("" if meas.confidence >= min_confidence else "low_confidence"),
+                          seconds=time.perf_counter() - t0, reg=meas.registration, meas=meas))
+    return edges
+
+
+def _register_until_placed(maps, pairs, sim, max_pairs_per_map, cfg: MergeConfig, min_confidence: float,
+                           timings: Timings) -> list[dict]:
+    """Guess-free edges of the screened ``pairs``, then, while the consensus leaves maps
+    unplaced, of each such map's next ``max_pairs_per_map`` most similar maps
+    (``pairs.more_pairs``; at most ``GROW_ROUNDS`` rounds): the descriptor ranks the right
+    neighbours of a repetitive building low, so a map none of its first pairs places gets more
+    (``docs/design.md``, "Pose graph over pairwise registrations")."""
+    edges = _register_pairs(maps, pairs, None, cfg, min_confidence, timings)
+    tried = list(pairs)
+    for _ in range(GROW_ROUNDS if max_pairs_per_map else 0):
+        _, cons = _consensus(maps, edges, min_confidence)
+        unplaced = np.flatnonzero(np.ones(len(maps), bool) if cons is None else ~cons.placed)
+        new = more_pairs(sim, unplaced, tried, max_pairs_per_map) if len(unplaced) else []
+        if not new:
+            break
+        edges += _register_pairs(maps, new, None, cfg, min_confidence, timings)
+        tried += new
+    return edges
 
 
 def _polish(maps, chosen: list[dict], cfg: MergeConfig, timings: Timings) -> None:
@@ -160,7 +218,8 @@ def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine
       T_trues: optional true ``T_0_k`` (``n - 1``) for the thesis errors per map.
       config: all other parameters (``MergeConfig``).
       max_pairs_per_map: without guesses and from 7 maps on, each map's this many most similar
-        maps (coarse descriptor) are registered (``None``: every pair).
+        maps (coarse descriptor) are registered (``None``: every pair); a map the measurements
+        do not place then gets its next this many, for up to ``GROW_ROUNDS`` rounds.
       min_confidence: measurements below it are not used (``why="low_confidence"``), nor those
         whose registration ended other than ``"ok"`` (``why="registration ambiguous"``, ...),
         except that without guesses a pair keeps the candidate pose the other pairs agree with
@@ -188,32 +247,19 @@ def merge_many(maps: Sequence[OccupancyMap], T_inits=None, *, pairs=None, refine
     res = maps[0].resolution
     with timings.stage("screen"):
         if T0_guess is None:
-            cand, _ = screen_pairs(maps, max_pairs_per_map)
+            cand, sim = screen_pairs(maps, max_pairs_per_map)
         else:
             near = [(i, j) for i in range(n) for j in range(i + 1, n)
                     if _boxes_overlap(maps[i], maps[j], np.linalg.inv(T0_guess[i]) @ T0_guess[j], 2 * res)]
             cand = sorted(set(near) | {(min(e), max(e)) for e in guesses})
     edges: list[dict] = []
     with timings.stage("register"):
-        for i, j in cand:
-            t0 = time.perf_counter()
-            if T0_guess is not None and cfg.registration.refine == "none":
-                continue
-            T_init = np.eye(4) if T0_guess is None else np.linalg.inv(T0_guess[i]) @ T0_guess[j]
-            try:
-                meas = measure_pair(maps[i], maps[j], T_init, cfg, T0_guess is None, reg_timings)
-            except MergeError as err:
-                edges.append(dict(i=i, j=j, kind="registration", T=None, info=None, conf=None, figures=None,
-                                  why=f"registration: {err.kind}: {err}", seconds=time.perf_counter() - t0, reg=None))
-                continue
-            figures = dict(meas.registration.info or {})
-            if T0_guess is None:  # guess-free: its candidate poses, best first (what the consensus chose from)
-                figures["candidates"] = list(meas.registration.candidates)
-            edges.append(dict(i=i, j=j, kind="registration", T=meas.T_i_j, info=meas.information,
-                              conf=meas.confidence, figures=figures,
-                              why=("" if meas.verdict == "ok" else f"registration {meas.verdict}")
-                              or ("" if meas.confidence >= min_confidence else "low_confidence"),
-                              seconds=time.perf_counter() - t0, reg=meas.registration, meas=meas))
+        if T0_guess is not None and cfg.registration.refine == "none":
+            pass  # the guesses are the measurements
+        elif T0_guess is not None:
+            edges = _register_pairs(maps, cand, T0_guess, cfg, min_confidence, reg_timings)
+        else:
+            edges = _register_until_placed(maps, cand, sim, max_pairs_per_map, cfg, min_confidence, reg_timings)
     if T0_guess is None:
         with timings.stage("consensus"):
             chosen = _choose_by_consensus(maps, edges, min_confidence)
@@ -307,6 +353,7 @@ def _report(maps, edges, sol, transforms, T_trues, T0_guess, cfg, timings, reg_t
     reg_edges = [e for e in edge_reports if e.kind != "prior"]
     figures = {"maps_placed": int(sum(t is not None for t in transforms)), "pairs_possible": n * (n - 1) // 2,
                "pairs_registered": sum(e.kind == "registration" for e in edge_reports),
+               "pairs_added": len({(e.i, e.j) for e in reg_edges} - set(cand)),
                "edges_kept": sum(e.kept for e in reg_edges), "edges_rejected": sum(not e.kept for e in reg_edges),
                "candidate_pairs": [list(c) for c in cand], "solver_iterations": sol.num_iterations,
                "solver_rounds": sol.rounds, "solver_cost": sol.cost, "solver_converged": sol.converged,

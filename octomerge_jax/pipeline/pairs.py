@@ -24,7 +24,7 @@ from .report import MergeError, Registration
 from .timings import Timings
 
 __all__ = ["PairMeasurement", "alignment_information", "candidate_measurement", "describe_map", "measure_pair",
-           "screen_pairs"]
+           "more_pairs", "screen_pairs"]
 
 DESCRIPTOR_CELL_M = 1.0  # column size of the coarse descriptor [m]
 _HEIGHT_BINS = 8  # occupied-height classes per column
@@ -161,3 +161,18 @@ def screen_pairs(maps, max_pairs_per_map: int | None, all_below: int = 7) -> tup
         for j in np.argsort(-s, kind="stable")[:k]:
             chosen.add((min(i, int(j)), max(i, int(j))))
     return sorted(chosen), sim
+
+
+def more_pairs(sim: np.ndarray, maps_to_grow, tried, k: int) -> list[tuple[int, int]]:
+    """The next pairs to register for maps the measurements so far do not place: for each of
+    ``maps_to_grow`` its ``k`` most similar maps (``sim (n, n)``, ``screen_pairs``') whose pair
+    is not in ``tried`` (pairs ``(i, j)``, ``i < j``). Returns new pairs ``(i, j)``, ``i < j``,
+    sorted; empty when every pair of those maps has been tried."""
+    tried = {(min(a, b), max(a, b)) for a, b in tried}
+    new: set[tuple[int, int]] = set()
+    for u in maps_to_grow:
+        u = int(u)
+        order = [int(v) for v in np.argsort(-sim[u], kind="stable") if int(v) != u]
+        fresh = [(min(u, v), max(u, v)) for v in order if (min(u, v), max(u, v)) not in tried]
+        new.update(fresh[:int(k)])
+    return sorted(new)
