@@ -28,10 +28,11 @@ from octomerge_jax.pipeline import (
     icp_trace,
     merge,
     merge_many,
+    register,
     transform_from_xyz_rpy,
 )
 from octomerge_jax.resample import transform_map
-from octomerge_jax.sim import small_room_map, small_room_voxels
+from octomerge_jax.sim import small_room_map, small_room_voxels, team_maps
 
 RES = 0.1
 T_TRUE = transform_from_xyz_rpy(0.35, -0.25, 0.0, 0.0, 0.0, math.pi / 4)  # T_1_2, thesis: pi/4 yaw
@@ -559,3 +560,23 @@ def test_default_refinement_is_sub_voxel_on_the_simulated_scenes(scene, res):
     for guess in (T, transform_from_xyz_rpy(0.18, -0.24, 0.0, 0.0, 0.0, 0.1) @ T):
         _, rep = merge(m1, m2, guess, T_1_2_true=T)
         assert rep.displacement < res / 4, (scene, rep.displacement, rep.icp)
+
+
+def test_icp_that_slid_out_of_the_guess_basin_is_set_aside():
+    """Two half-overlapping office tiles at 0.2 m: ICP from the very truth slides 2 m along the
+    corridors, filling free space (``docs/design.md``, "ICP that leaves its start"). Its result
+    is set aside: ``"icp"`` keeps the guess with a warning, ``"icp+dense"`` aligns from it."""
+    from octomerge_jax.registration import metrics
+
+    team = team_maps("office", 16, 0.2, seed=0, overlap_m=3.0)
+    m1, m2 = team.maps[4], team.maps[6]
+    T_true = np.linalg.inv(team.T_0_k[4]) @ team.T_0_k[6]
+    icp = register(m1, m2, T_true, MergeConfig().replace(registration={"refine": "icp"}))
+    left = icp.info["icp_left_start"]
+    assert left["net_icp"] < 0.5 * left["net_start"]
+    np.testing.assert_allclose(icp.T_1_2, T_true, atol=1e-9)  # the guess, kept
+    assert any("slid out of the guess's basin" in w for w in icp.warnings)
+    dense = register(m1, m2, T_true, MergeConfig())  # "icp+dense", the default
+    assert "icp_left_start" in dense.info and dense.info["verdict"] == "ok"
+    assert float(metrics.rotation_angle_error(dense.T_1_2, T_true)) < 0.02
+    assert float(metrics.translation_distance(dense.T_1_2, T_true)) < 0.1  # half a voxel

@@ -33,7 +33,7 @@ from ..registration import neighbors
 from .clouds import icp_kwargs, occupied_clouds, stage_epsilon
 from .config import MergeConfig
 from .merging import check_resolutions, check_transform, merge, pair_report, transform_to_frame_1
-from .globalreg import judge_local
+from .globalreg import judge_local, local_cell_sets
 from .refine import Overlap, overlap_for_icp, register, register_icp
 from .report import MergeError, MergeReport, Registration
 from .timings import Timings
@@ -171,8 +171,11 @@ def _register_all(jobs: dict[int, _Job], cfg: MergeConfig, results: list) -> dic
             job.timings["icp"] = dt
             clouds, overlap = prepared[i]
             try:
-                r = register_icp(job.m1, job.m2, clouds, overlap, job.T_1_2_init, result, cfg, job.timings)
-                out[i] = judge_local(job.m1, job.m2, clouds, r, job.timings)  # a wrong basin: "failed", as merge
+                with job.timings.stage("verify"):
+                    sets = local_cell_sets(job.m1, job.m2, clouds)
+                r = register_icp(job.m1, job.m2, clouds, overlap, job.T_1_2_init, result, cfg, job.timings, sets)
+                # ICP out of the guess's basin set aside, a wrong basin "failed": as merge
+                out[i] = judge_local(job.m1, job.m2, clouds, r, job.timings, sets)
             except MergeError as err:
                 results[i] = _error(err)
     return out

@@ -1,5 +1,6 @@
 """Registration without an initial guess (``refine="global"``, the default of ``merge`` when no
-guess is given): ``register_global``; and the verdict on a local ICP result, ``judge_local``.
+guess is given): ``register_global``; and the checks of a local ICP result: ``icp_left_start``
+(it slid out of its start's basin) and its verdict, ``judge_local``.
 
 ::
 
@@ -42,17 +43,18 @@ from .. import se3
 from ..map import OccupancyMap, bucket_capacity
 from ..registration import Status
 from ..registration.features import cell_codes, coarse_cloud, coarse_voxel_size, neighbor_pairs, normals
-from ..registration.global_search import (consistency_score, distinct_poses, free_space, horizontal_pinning,
-                                          level_rotation, map_cell_sets, net_agreement, nudge_poses,
-                                          pose_distance, rotation_z, translation_candidates, yaw_candidates)
+from ..registration.global_search import (CellSets, consistency_score, distinct_poses, free_space,
+                                          horizontal_pinning, level_rotation, map_cell_sets, net_agreement,
+                                          nudge_poses, pose_distance, rotation_z, translation_candidates,
+                                          yaw_candidates)
 from .clouds import icp_info, icp_kwargs, occupied_clouds, overlap_margin, select_overlap, stage_epsilon
 from .config import MergeConfig
 from .report import MergeError, Registration
 from .timings import Timings
 
 __all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MAX_CONFLICT_RATIO", "MIN_CONFIDENCE", "MIN_EXPLAINED",
-           "MIN_LOCAL_FITNESS", "MIN_PINNING_CELLS", "MIN_SHARED", "MIN_SHARED_OK", "explained_fraction",
-           "judge_local", "register_global"]
+           "MAX_ICP_DROP", "MAX_LOCAL_CONFLICT_RATIO", "MIN_LOCAL_FITNESS", "MIN_PINNING_CELLS", "MIN_SHARED", "MIN_SHARED_OK",
+           "explained_fraction", "icp_left_start", "judge_local", "local_cell_sets", "register_global"]
 
 #: a distinct second pose whose net agreement is within this share of the best's: "ambiguous"
 AMBIGUOUS_GAP = 0.1
@@ -76,6 +78,13 @@ MIN_PINNING_CELLS = 8.0
 MAX_CONFLICT_RATIO = 0.08
 #: a local ICP result whose fitness (inliers over map 2's commonly mapped points) is below: "failed"
 MIN_LOCAL_FITNESS = 0.3
+#: a local result with more conflicting than this share of its agreeing coarse cells: "failed" (right results
+#: conflict on a few per cent, docs/design.md, "ICP that leaves its start")
+MAX_LOCAL_CONFLICT_RATIO = 0.2
+#: a local ICP result whose net agreement falls below its start's by more than this share of the start's
+#: (and by at least _MIN_DROP_CELLS) slid out of the start's basin (docs/design.md, "ICP that leaves its start")
+MAX_ICP_DROP = 0.25
+_MIN_DROP_CELLS = 10.0
 _NORMAL_RADIUS = 2.0  # [coarse cells]
 _YAW_PEAKS, _TRANSLATION_PEAKS = 4, 6  # yaw peaks (each also turned by pi) x translation peaks per yaw
 _MAX_CORRELATION_CELLS = 1 << 21  # the correlation grid's cells (padded): its cell grows to fit
@@ -324,25 +333,49 @@ _MESSAGES = {
 }
 
 
+def local_cell_sets(m1: OccupancyMap, m2: OccupancyMap, clouds) -> tuple[CellSets, CellSets]:
+    """Both maps' coarse cell sets (``map_cell_sets`` of the occupied clouds ``clouds = (p1,
+    p2)``) at the cell a local registration is checked on: ``coarse_voxel_size``'s smallest,
+    ``max(3 res, 0.25 m)``."""
+    p1, p2 = clouds
+    v = coarse_voxel_size(lambda v: 0, m1.resolution)
+    return map_cell_sets(p1, m1, v), map_cell_sets(p2, m2, v)
+
+
+def icp_left_start(sets: tuple[CellSets, CellSets], T_start, T_icp) -> tuple[bool, float, float]:
+    """Whether ICP from ``T_start`` slid out of its basin: ``(left, net at T_start, net at
+    T_icp)``, the net agreements (``net_agreement`` on ``sets``, ``local_cell_sets``) [coarse
+    cells]; ``left`` when the result's is below the start's by more than ``MAX_ICP_DROP`` of
+    the start's magnitude and ``_MIN_DROP_CELLS``. Point-to-point ICP on a small or partial
+    overlap can slide along corridors from the very truth; the free space it then fills gives
+    it away (``docs/design.md``, "ICP that leaves its start")."""
+    s1, s2 = sets
+    net_start = net_agreement(s1, s2, T_start, CONFLICT_WEIGHT)
+    net_icp = net_agreement(s1, s2, T_icp, CONFLICT_WEIGHT)
+    drop = net_start - net_icp
+    return bool(drop > max(MAX_ICP_DROP * abs(net_start), _MIN_DROP_CELLS)), net_start, net_icp
+
+
 def judge_local(m1: OccupancyMap, m2: OccupancyMap, clouds, registration: Registration,
-                timings: Timings | None = None) -> Registration:
+                timings: Timings | None = None, sets: tuple[CellSets, CellSets] | None = None) -> Registration:
     """The verdict on a local registration (``refine="icp"`` from a guess): ``"failed"`` when
     ICP ended in a wrong basin: its fitness is below ``MIN_LOCAL_FITNESS``, or on the coarse
     grid of ``register_global`` the map-2 surfaces it puts into map 1's free space (and back)
-    outweigh the agreeing ones (``agree - CONFLICT_WEIGHT * conflict <= 0``). Returns
-    ``registration`` with ``info["verdict"]`` and ``info["consistency"]`` set and, on
-    failure, a warning."""
+    outweigh the agreeing ones (``agree - CONFLICT_WEIGHT * conflict <= 0``) or exceed
+    ``MAX_LOCAL_CONFLICT_RATIO`` of them. ``sets``: the
+    maps' ``local_cell_sets`` when already built. Returns ``registration`` with
+    ``info["verdict"]`` and ``info["consistency"]`` set and, on failure, a warning."""
     info = registration.info
     if info is None:
         return registration
     timings = Timings() if timings is None else timings
-    p1, p2 = clouds
     v = coarse_voxel_size(lambda v: 0, m1.resolution)
     with timings.stage("verify"):
-        agree, conflict = consistency_score(map_cell_sets(p1, m1, v), map_cell_sets(p2, m2, v),
-                                            registration.T_1_2)
+        s1, s2 = local_cell_sets(m1, m2, clouds) if sets is None else sets
+        agree, conflict = consistency_score(s1, s2, registration.T_1_2)
     fitness = float(info.get("fitness", 0.0))
-    bad = fitness < MIN_LOCAL_FITNESS or agree - CONFLICT_WEIGHT * conflict <= 0
+    bad = (fitness < MIN_LOCAL_FITNESS or agree - CONFLICT_WEIGHT * conflict <= 0
+           or conflict > MAX_LOCAL_CONFLICT_RATIO * agree)
     info = {**info, "verdict": "failed" if bad else "ok",
             "consistency": {"voxel": round(v, 4), "agree": agree, "conflict": conflict}}
     warnings = registration.warnings

@@ -32,7 +32,7 @@ from ..registration import Status
 from .candidates import multi_candidates
 from .clouds import Clouds, icp_info, icp_kwargs, occupied_clouds, overlap_margin, point_stats, select_overlap
 from .config import MergeConfig
-from .globalreg import judge_local, register_global
+from .globalreg import icp_left_start, judge_local, local_cell_sets, register_global
 from .ranking import rank_and_refine
 from .report import MergeError, Registration
 from .timings import Timings
@@ -82,8 +82,10 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
     with timings.stage("icp") as stage:
         result = stage.ready(reg.icp(overlap.points_2, overlap.points_1, T_1_2_init,
                                      **icp_kwargs(config, m1.resolution)))
-    registration = register_icp(m1, m2, clouds, overlap, T_1_2_init, result, config, timings)
-    return judge_local(m1, m2, clouds, registration, timings)
+    with timings.stage("verify"):
+        sets = local_cell_sets(m1, m2, clouds)
+    registration = register_icp(m1, m2, clouds, overlap, T_1_2_init, result, config, timings, sets)
+    return judge_local(m1, m2, clouds, registration, timings, sets)
 
 
 def register_none(clouds: Clouds, T_1_2_init) -> Registration:
@@ -133,14 +135,30 @@ def overlap_for_icp(clouds: Clouds, T_1_2_init, config: MergeConfig, resolution:
 
 
 def register_icp(m1, m2, clouds: Clouds, overlap: Overlap, T_1_2_init, result, config: MergeConfig,
-                 timings: Timings) -> Registration:
+                 timings: Timings, sets=None) -> Registration:
     """``refine="icp"`` / ``"icp+dense"`` after ICP (``result``, an ``IcpResult`` with source =
-    map 2's overlap points): ``accept_icp``'s policy, then for ``"icp+dense"`` the dense
-    alignment (``dense_after_icp``); the transform made rigid (``se3.project_to_rigid``)."""
+    map 2's overlap points): ``accept_icp``'s policy; then, given the maps' cell sets ``sets``
+    (``globalreg.local_cell_sets``), a result that slid out of the guess's basin
+    (``globalreg.icp_left_start``) is set aside (``info["icp_left_start"]``): ``"icp"`` keeps
+    the guess, with a warning, and ``"icp+dense"`` runs the dense alignment from the guess;
+    otherwise ``"icp+dense"`` runs it from ICP's result (``dense_after_icp``). The transform is
+    made rigid (``se3.project_to_rigid``)."""
     info = icp_info(result)
     T_1_2, warnings = accept_icp(result, info, T_1_2_init, config)
+    left = False
+    if sets is not None:
+        with timings.stage("verify"):
+            left, net_start, net_icp = icp_left_start(sets, T_1_2_init, T_1_2)
+    if left:
+        info["icp_left_start"] = {"net_start": net_start, "net_icp": net_icp}
+        T_1_2 = np.asarray(T_1_2_init, np.float64)
+        warnings.clear()  # they speak of ICP's transform, which is not used
+        if config.registration.refine != "icp+dense":
+            warnings.append(f"ICP slid out of the guess's basin (net agreement {net_start:g} -> {net_icp:g} "
+                            "coarse cells); the guess is kept: try --refine icp+dense")
     if config.registration.refine == "icp+dense":
-        T_1_2, info = dense_after_icp(m1, m2, clouds, T_1_2, T_1_2_init, info, config, timings, warnings)
+        T_1_2, info = dense_after_icp(m1, m2, clouds, T_1_2, T_1_2_init, info, config, timings, warnings,
+                                      from_guess=left)
     return Registration(T_1_2=se3.project_to_rigid(T_1_2), converged=info["converged"], info=info,
                         result=result, counts=overlap.counts, points_1=overlap.points_1,
                         points_2=overlap.points_2, warnings=tuple(warnings))
@@ -208,14 +226,15 @@ def accept_icp(best, info: dict, T_1_2_init, config: MergeConfig) -> tuple[np.nd
 
 
 def dense_after_icp(m1, m2, clouds: Clouds, T_icp, T_1_2_init, info: dict, config: MergeConfig,
-                    timings: Timings, warnings: list[str]) -> tuple[np.ndarray, dict]:
+                    timings: Timings, warnings: list[str], from_guess: bool = False) -> tuple[np.ndarray, dict]:
     """``refine="icp+dense"``: the dense alignment from ICP's transform ``T_icp``, from the
     level of ICP's last correspondence distance on when ICP converged or ran out of iterations
-    (it was still refining at that distance); if its result is not usable, from the initial
-    guess; if that fails too, ``T_icp`` is kept and both failures go to ``warnings``. Returns
-    ``(T_1_2, info with the dense figures under "dense")``."""
+    (it was still refining at that distance; ``from_guess``: ``T_icp`` is the guess, all
+    levels); if its result is not usable, from the initial guess; if that fails too, ``T_icp``
+    is kept and both failures go to ``warnings``. Returns ``(T_1_2, info with the dense
+    figures under "dense")``."""
     retry: list[str] = []
-    within = info["correspondence_distance"] if Status[info["status"].upper()].usable else None
+    within = info["correspondence_distance"] if Status[info["status"].upper()].usable and not from_guess else None
     T_1_2, dense_info, _ = refine_dense(m1, m2, T_icp, timings, retry, within_m=within)
     if not Status(dense_info["status"]).usable:
         T_1_2, dense_info, _ = refine_dense(m1, m2, T_1_2_init, timings, retry)
