@@ -47,7 +47,8 @@ from ..registration.global_search import (CellSets, consistency_score, distinct_
                                           horizontal_pinning, level_rotation, map_cell_sets, net_agreement,
                                           nudge_poses, pose_distance, rotation_z, translation_candidates,
                                           yaw_candidates)
-from .clouds import icp_info, icp_kwargs, occupied_clouds, overlap_margin, select_overlap, stage_epsilon
+from .clouds import (icp_info, icp_kwargs, occupied_clouds, overlap_margin, point_stats, select_overlap,
+                     stage_epsilon)
 from .config import MergeConfig
 from .report import MergeError, Registration
 from .timings import Timings
@@ -110,14 +111,19 @@ class _Refined(NamedTuple):
     """One candidate after ICP (host values)."""
 
     T_1_2: np.ndarray  # (4, 4) float64
-    result: object  # IcpResult or None (too little overlap to run ICP)
+    result: object  # IcpResult, AlignResult (_dense_candidate) or None (too little overlap to run ICP)
     overlap: tuple  # (q1 (k1, 3), q2 (k2, 3)) float32 commonly mapped subsets [m]
     index: int  # row of the coarse candidates
 
     @property
     def usable(self) -> bool:
-        """ICP ran and ended with a usable ``Status``."""
+        """ICP (or the dense alignment) ran and ended with a usable ``Status``."""
         return self.result is not None and Status(int(self.result.status)).usable
+
+    @property
+    def is_icp(self) -> bool:
+        """The pose is ICP's (not the dense alignment's, ``_dense_candidate``)."""
+        return isinstance(self.result, reg.IcpResult)
 
 
 def _pad(q, cap: int) -> np.ndarray:
@@ -204,7 +210,7 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         screened = np.array([net_agreement(s1, s2, T, CONFLICT_WEIGHT) for T in T_all], np.float64)
         picked = list(distinct_poses(T_all, screened, extent, 2.0 * v, _NUM_REFINED))
         # and the best after half-cell nudges, if another: a pose a third of a cell off ranks low
-        nudged = nudge_poses(s1, s2, T_all, v / 2, CONFLICT_WEIGHT)[1]
+        T_nudged, nudged = nudge_poses(s1, s2, T_all, v / 2, CONFLICT_WEIGHT)
         i_nudged = int(np.argmax(nudged))
         if all(pose_distance(T_all[i_nudged], T_all[i], extent) >= 2.0 * v for i in picked):
             picked.append(i_nudged)
@@ -212,12 +218,24 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     with timings.stage("verify"):
         agree_conflict = [consistency_score(s1, s2, r.T_1_2) for r in refined]
         final = np.array([a - CONFLICT_WEIGHT * c for a, c in agree_conflict], np.float64)
+    # a candidate whose ICP slid out of its (nudged) start's basin, a start better than every ICP result:
+    # the dense alignment from there instead
+    best_icp = float(final.max())
+    for k, i in enumerate(picked):
+        if not (refined[k].usable and nudged[i] > best_icp and _dropped(nudged[i], final[k])):
+            continue
+        alt = _dense_candidate(m1, m2, p1, p2, T_nudged[i], int(i), config, resolution, timings)
+        if alt is not None:
+            with timings.stage("verify"):
+                a, c = consistency_score(s1, s2, alt.T_1_2)
+            if a - CONFLICT_WEIGHT * c > final[k]:
+                refined[k], agree_conflict[k], final[k] = alt, (a, c), a - CONFLICT_WEIGHT * c
     rank = np.argsort(-final, kind="stable")
     i_best = int(rank[0])
     best = refined[i_best]
     # ICP again from the best, on the commonly mapped subsets at its result: those of the
     # candidate's coarse pose may hold two minima a few hundredths of a radian apart
-    again = _refine(p1, p2, best.T_1_2, best.index, config, resolution, timings) if best.result is not None else None
+    again = _refine(p1, p2, best.T_1_2, best.index, config, resolution, timings) if best.is_icp else None
     if again is not None and again.usable:
         with timings.stage("verify"):
             a, c = consistency_score(s1, s2, again.T_1_2)
@@ -247,7 +265,13 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
                   screened=[round(float(x), 1) for x in screened[picked]], agree=agree, conflict=conflict,
                   shared=round(shared, 4), explained=round(explained, 4), explained_points=n_in, gap=round(gap, 4),
                   pinning=round(pinning, 2), conflict_ratio=round(conflict_ratio, 4))
-    info = {**(icp_info(best.result) if best.result is not None else _no_icp()), "verdict": verdict, "global": info_g}
+    if best.is_icp:
+        figures = icp_info(best.result)
+    elif best.result is not None:  # the dense alignment's pose: ICP's point figures measured there
+        figures = {**_dense_info(best.result), **point_stats(p1, p2, best.T_1_2, config, resolution)}
+    else:
+        figures = _no_icp()
+    info = {**figures, "verdict": verdict, "global": info_g}
     candidates = tuple({"T_1_2": np.asarray(refined[j].T_1_2).tolist(),
                         "score": round(float(final[j]) / max(cells, 1), 5), "agree": agree_conflict[j][0],
                         "conflict": agree_conflict[j][1]} for j in [i_best, *seconds])
@@ -257,7 +281,8 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         warnings = ("ambiguous: " + "; ".join(doubts) + "; give a guess (--xyz/--rpy) to choose",)
     else:
         warnings = () if verdict == "ok" else (_MESSAGES[verdict].format(frac=explained, shared=shared),)
-    return Registration(T_1_2=best.T_1_2, converged=bool(info["converged"]), info=info, result=best.result,
+    return Registration(T_1_2=best.T_1_2, converged=bool(info["converged"]), info=info,
+                        result=best.result if best.is_icp else None,
                         counts=counts, points_1=q1, points_2=q2, warnings=warnings, confidence=confidence,
                         candidates=candidates)
 
@@ -313,6 +338,29 @@ def _doubts(gap: float, shared: float, pinning: float, conflict_ratio: float, co
     return doubts
 
 
+def _dense_candidate(m1, m2, p1, p2, T_start, index: int, config: MergeConfig, resolution: float,
+                     timings: Timings) -> _Refined | None:
+    """The dense alignment (``registration.align_dense``, all its levels) from ``T_start`` as a
+    candidate, for one whose ICP slid out of its start's basin (``docs/design.md``, "ICP that
+    leaves its start"); ``None`` when its status is not usable."""
+    with timings.stage("dense") as stage:
+        r = stage.ready(reg.align_dense(m1, m2, np.asarray(T_start, np.float64)))
+    if not Status(int(r.status)).usable:
+        return None
+    T = se3.project_to_rigid(np.asarray(r.T_1_2, np.float64))
+    rc = config.registration
+    return _Refined(T, r, select_overlap(p1, p2, T, rc.overlap, overlap_margin(config, resolution)), index)
+
+
+def _dense_info(r) -> dict:
+    """An ``AlignResult``'s status figures, as ``icp_info`` gives ICP's."""
+    status = Status(int(r.status))
+    return {"converged": status is Status.CONVERGED, "status": str(status),
+            "num_iterations": int(np.asarray(r.num_iterations)),
+            "dense": {"status": int(status), "agreement": float(np.asarray(r.agreement)),
+                      "loss": float(np.asarray(r.loss)), "started_from": "nudged candidate (its ICP slid)"}}
+
+
 def _no_icp() -> dict:
     return {"converged": False, "status": str(Status.TOO_FEW_INLIERS), "num_iterations": 0, "num_inliers": 0,
             "rmse": float("nan"), "fitness": 0.0, "correspondence_distance": float("nan")}
@@ -352,8 +400,13 @@ def icp_left_start(sets: tuple[CellSets, CellSets], T_start, T_icp) -> tuple[boo
     s1, s2 = sets
     net_start = net_agreement(s1, s2, T_start, CONFLICT_WEIGHT)
     net_icp = net_agreement(s1, s2, T_icp, CONFLICT_WEIGHT)
-    drop = net_start - net_icp
-    return bool(drop > max(MAX_ICP_DROP * abs(net_start), _MIN_DROP_CELLS)), net_start, net_icp
+    return _dropped(net_start, net_icp), net_start, net_icp
+
+
+def _dropped(net_start: float, net_end: float) -> bool:
+    """The net agreement fell from ``net_start`` to ``net_end`` by more than ``MAX_ICP_DROP`` of
+    the start's magnitude and ``_MIN_DROP_CELLS``."""
+    return bool(net_start - net_end > max(MAX_ICP_DROP * abs(net_start), _MIN_DROP_CELLS))
 
 
 def judge_local(m1: OccupancyMap, m2: OccupancyMap, clouds, registration: Registration,
