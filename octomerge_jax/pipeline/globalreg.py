@@ -12,7 +12,8 @@ guess is given): ``register_global``; and the checks of a local ICP result: ``ic
         free when a quarter of it is seen free and it holds no surface; each map's grid offset
         so that its floor lies mid-cell)
         ──> top distinct poses, and the best once nudged by half cells
-        ──ICP on the commonly mapped subsets (thesis Alg. 2-3)
+        ──ICP on the commonly mapped subsets (thesis Alg. 2-3); where ICP slid out of a nudged
+          start better than every ICP result, the dense alignment from that start instead
         ──> net agreement again: best (ICP once more from it, on the subsets at its result),
             second-best distinct pose ──> verdict, confidence
 
@@ -341,8 +342,8 @@ def _doubts(gap: float, shared: float, pinning: float, conflict_ratio: float, co
 def _dense_candidate(m1, m2, p1, p2, T_start, index: int, config: MergeConfig, resolution: float,
                      timings: Timings) -> _Refined | None:
     """The dense alignment (``registration.align_dense``, all its levels) from ``T_start`` as a
-    candidate, for one whose ICP slid out of its start's basin (``docs/design.md``, "ICP that
-    leaves its start"); ``None`` when its status is not usable."""
+    candidate, for one whose ICP slid out of its start's basin; ``None`` when its status is not
+    usable (``docs/design.md``, "ICP that leaves its start")."""
     with timings.stage("dense") as stage:
         r = stage.ready(reg.align_dense(m1, m2, np.asarray(T_start, np.float64)))
     if not Status(int(r.status)).usable:
