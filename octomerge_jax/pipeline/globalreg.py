@@ -54,8 +54,8 @@ from .config import MergeConfig
 from .report import MergeError, Registration
 from .timings import Timings
 
-__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MAX_CONFLICT_RATIO", "MIN_CONFIDENCE", "MIN_EXPLAINED",
-           "MAX_ICP_DROP", "MAX_LOCAL_CONFLICT_RATIO", "MIN_LOCAL_FITNESS", "MIN_PINNING_CELLS", "MIN_SHARED", "MIN_SHARED_OK",
+__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MAX_CONFLICT_RATIO", "MAX_ICP_DROP", "MAX_LOCAL_CONFLICT_RATIO",
+           "MIN_CONFIDENCE", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS", "MIN_PINNING_CELLS", "MIN_SHARED", "MIN_SHARED_OK",
            "explained_fraction", "icp_left_start", "judge_local", "local_cell_sets", "register_global"]
 
 #: a distinct second pose whose net agreement is within this share of the best's: "ambiguous"
@@ -218,19 +218,9 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     refined = [_refine(p1, p2, T_all[i], int(i), config, resolution, timings) for i in picked]
     with timings.stage("verify"):
         agree_conflict = [consistency_score(s1, s2, r.T_1_2) for r in refined]
-        final = np.array([a - CONFLICT_WEIGHT * c for a, c in agree_conflict], np.float64)
-    # a candidate whose ICP slid out of its (nudged) start's basin, a start better than every ICP result:
-    # the dense alignment from there instead
-    best_icp = float(final.max())
-    for k, i in enumerate(picked):
-        if not (refined[k].usable and nudged[i] > best_icp and _dropped(nudged[i], final[k])):
-            continue
-        alt = _dense_candidate(m1, m2, p1, p2, T_nudged[i], int(i), config, resolution, timings)
-        if alt is not None:
-            with timings.stage("verify"):
-                a, c = consistency_score(s1, s2, alt.T_1_2)
-            if a - CONFLICT_WEIGHT * c > final[k]:
-                refined[k], agree_conflict[k], final[k] = alt, (a, c), a - CONFLICT_WEIGHT * c
+    refined, agree_conflict = _dense_where_icp_slid(m1, m2, (p1, p2), (s1, s2), T_nudged[picked], nudged[picked],
+                                                    refined, agree_conflict, config, timings)
+    final = np.array([a - CONFLICT_WEIGHT * c for a, c in agree_conflict], np.float64)
     rank = np.argsort(-final, kind="stable")
     i_best = int(rank[0])
     best = refined[i_best]
@@ -339,8 +329,32 @@ def _doubts(gap: float, shared: float, pinning: float, conflict_ratio: float, co
     return doubts
 
 
-def _dense_candidate(m1, m2, p1, p2, T_start, index: int, config: MergeConfig, resolution: float,
-                     timings: Timings) -> _Refined | None:
+def _dense_where_icp_slid(m1, m2, clouds, sets, starts, start_nets, refined: list, agree_conflict: list,
+                          config: MergeConfig, timings: Timings) -> tuple[list, list]:
+    """``(refined, agree_conflict)`` with each candidate whose ICP slid out of its start's basin
+    replaced by the dense alignment from that start (``_dense_candidate``) where that agrees
+    better: ICP's net agreement fell below its start's (``_dropped``) and the start beats every
+    candidate's ICP result. ``starts (k, 4, 4)``, ``start_nets (k,)``: the candidates' nudged
+    starts and their net agreements; ``sets``: both maps' ``CellSets`` at the coarse cell
+    (``docs/design.md``, "ICP that leaves its start")."""
+    s1, s2 = sets
+    nets = [a - CONFLICT_WEIGHT * c for a, c in agree_conflict]
+    best_icp = max(nets)
+    refined, agree_conflict = list(refined), list(agree_conflict)
+    for k, (start, start_net) in enumerate(zip(starts, start_nets)):
+        if not (refined[k].usable and start_net > best_icp and _dropped(start_net, nets[k])):
+            continue
+        alt = _dense_candidate(m1, m2, clouds, start, refined[k].index, config, timings)
+        if alt is None:
+            continue
+        with timings.stage("verify"):
+            a, c = consistency_score(s1, s2, alt.T_1_2)
+        if a - CONFLICT_WEIGHT * c > nets[k]:
+            refined[k], agree_conflict[k] = alt, (a, c)
+    return refined, agree_conflict
+
+
+def _dense_candidate(m1, m2, clouds, T_start, index: int, config: MergeConfig, timings: Timings) -> _Refined | None:
     """The dense alignment (``registration.align_dense``, all its levels) from ``T_start`` as a
     candidate, for one whose ICP slid out of its start's basin; ``None`` when its status is not
     usable (``docs/design.md``, "ICP that leaves its start")."""
@@ -350,7 +364,8 @@ def _dense_candidate(m1, m2, p1, p2, T_start, index: int, config: MergeConfig, r
         return None
     T = se3.project_to_rigid(np.asarray(r.T_1_2, np.float64))
     rc = config.registration
-    return _Refined(T, r, select_overlap(p1, p2, T, rc.overlap, overlap_margin(config, resolution)), index)
+    q = select_overlap(*clouds, T, rc.overlap, overlap_margin(config, float(m1.resolution)))
+    return _Refined(T, r, q, index)
 
 
 def _dense_info(r) -> dict:
