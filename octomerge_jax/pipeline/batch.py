@@ -7,9 +7,9 @@ stage functions of ``merge`` (``refine.py``, ``transform_to_frame_1``, ``fuse_wi
    fails gets ``status="error"`` and a message, the others go on;
 2. ICP (``refine="icp"``, ``"icp+dense"``): pairs grouped by (resolution, source bucket, target bucket) and each
    group registered by **one** jitted call of ``registration.icp_padded_stack``, then judged
-   pair by pair (``register_icp``: the one ICP status policy, then the dense step; ``judge_local``:
-   a wrong basin is ``"failed"``, as in ``merge``); other refine modes register
-   pair by pair (``register``);
+   pair by pair (``register_icp``: the one ICP status policy, a result that slid out of the
+   guess's basin set aside, the dense step, and a wrong basin ``"failed"``, as in ``merge``);
+   other refine modes register pair by pair (``register``);
 3. ``transform_map`` per pair (pairs of one bucket share the compiled kernel);
 4. fusion: pairs grouped by (map-1 capacity, transformed map-2 capacity) and each group fused
    by one ``vmap`` of ``fuse`` with a static output capacity and gap-cell list; a pair whose
@@ -33,7 +33,6 @@ from ..registration import neighbors
 from .clouds import icp_kwargs, occupied_clouds, stage_epsilon
 from .config import MergeConfig
 from .merging import check_resolutions, check_transform, merge, pair_report, transform_to_frame_1
-from .globalreg import judge_local, local_cell_sets
 from .refine import Overlap, overlap_for_icp, register, register_icp
 from .report import MergeError, MergeReport, Registration
 from .timings import Timings
@@ -171,11 +170,8 @@ def _register_all(jobs: dict[int, _Job], cfg: MergeConfig, results: list) -> dic
             job.timings["icp"] = dt
             clouds, overlap = prepared[i]
             try:
-                with job.timings.stage("verify"):
-                    sets = local_cell_sets(job.m1, job.m2, clouds)
-                r = register_icp(job.m1, job.m2, clouds, overlap, job.T_1_2_init, result, cfg, job.timings, sets)
                 # ICP out of the guess's basin set aside, a wrong basin "failed": as merge
-                out[i] = judge_local(job.m1, job.m2, clouds, r, job.timings, sets)
+                out[i] = register_icp(job.m1, job.m2, clouds, overlap, job.T_1_2_init, result, cfg, job.timings)
             except MergeError as err:
                 results[i] = _error(err)
     return out

@@ -438,10 +438,10 @@ def judge_local(m1: OccupancyMap, m2: OccupancyMap, clouds, registration: Regist
     if info is None:
         return registration
     timings = Timings() if timings is None else timings
-    v = coarse_voxel_size(lambda v: 0, m1.resolution)
     with timings.stage("verify"):
         s1, s2 = local_cell_sets(m1, m2, clouds) if sets is None else sets
         agree, conflict = consistency_score(s1, s2, registration.T_1_2)
+    v = s1.occupied.voxel
     fitness = float(info.get("fitness", 0.0))
     bad = (fitness < MIN_LOCAL_FITNESS or agree - CONFLICT_WEIGHT * conflict <= 0
            or conflict > MAX_LOCAL_CONFLICT_RATIO * agree)

@@ -3,7 +3,8 @@ into the transform used, per ``config.registration.refine``, one function per mo
 
 - ``"none"``: the guess as is (``register_none``);
 - ``"icp"``: ICP on the commonly mapped subsets (``overlap`` under the guess, Alg. 2 + 3;
-  ``register_icp``), judged by ``accept_icp`` (the one ICP status policy);
+  ``register_icp``), judged by ``accept_icp`` (the one ICP status policy), set aside where it
+  slid out of the guess's basin (``globalreg.icp_left_start``);
 - ``"multi"``: candidates from the yaw grid and / or the correlation search
   (``candidates.py``), picked by the agreement of the two *maps*, then a local ICP step
   (``ranking.py``; ``register_multi``);
@@ -82,10 +83,7 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
     with timings.stage("icp") as stage:
         result = stage.ready(reg.icp(overlap.points_2, overlap.points_1, T_1_2_init,
                                      **icp_kwargs(config, m1.resolution)))
-    with timings.stage("verify"):
-        sets = local_cell_sets(m1, m2, clouds)
-    registration = register_icp(m1, m2, clouds, overlap, T_1_2_init, result, config, timings, sets)
-    return judge_local(m1, m2, clouds, registration, timings, sets)
+    return register_icp(m1, m2, clouds, overlap, T_1_2_init, result, config, timings)
 
 
 def register_none(clouds: Clouds, T_1_2_init) -> Registration:
@@ -135,20 +133,20 @@ def overlap_for_icp(clouds: Clouds, T_1_2_init, config: MergeConfig, resolution:
 
 
 def register_icp(m1, m2, clouds: Clouds, overlap: Overlap, T_1_2_init, result, config: MergeConfig,
-                 timings: Timings, sets=None) -> Registration:
+                 timings: Timings) -> Registration:
     """``refine="icp"`` / ``"icp+dense"`` after ICP (``result``, an ``IcpResult`` with source =
-    map 2's overlap points): ``accept_icp``'s policy; then, given the maps' cell sets ``sets``
-    (``globalreg.local_cell_sets``), a result that slid out of the guess's basin
-    (``globalreg.icp_left_start``) is set aside (``info["icp_left_start"]``): ``"icp"`` keeps
-    the guess, with a warning, and ``"icp+dense"`` runs the dense alignment from the guess;
-    otherwise ``"icp+dense"`` runs it from ICP's result (``dense_after_icp``). The transform is
-    made rigid (``se3.project_to_rigid``)."""
+    map 2's overlap points): ``accept_icp``'s policy; then a result that slid out of the
+    guess's basin (``globalreg.icp_left_start``, on the maps' ``globalreg.local_cell_sets``) is
+    set aside (``info["icp_left_start"]``): ``"icp"`` keeps the guess, with a warning, and
+    ``"icp+dense"`` runs the dense alignment from the guess; otherwise ``"icp+dense"`` runs it
+    from ICP's result (``dense_after_icp``). The transform is made rigid
+    (``se3.project_to_rigid``) and judged on the same cell sets (``globalreg.judge_local``: a
+    wrong basin is ``"failed"``)."""
     info = icp_info(result)
     T_1_2, warnings = accept_icp(result, info, T_1_2_init, config)
-    left = False
-    if sets is not None:
-        with timings.stage("verify"):
-            left, net_start, net_icp = icp_left_start(sets, T_1_2_init, T_1_2)
+    with timings.stage("verify"):
+        sets = local_cell_sets(m1, m2, clouds)
+        left, net_start, net_icp = icp_left_start(sets, T_1_2_init, T_1_2)
     if left:
         info["icp_left_start"] = {"net_start": net_start, "net_icp": net_icp}
         T_1_2 = np.asarray(T_1_2_init, np.float64)
@@ -159,9 +157,10 @@ def register_icp(m1, m2, clouds: Clouds, overlap: Overlap, T_1_2_init, result, c
     if config.registration.refine == "icp+dense":
         T_1_2, info = dense_after_icp(m1, m2, clouds, T_1_2, T_1_2_init, info, config, timings, warnings,
                                       from_guess=left)
-    return Registration(T_1_2=se3.project_to_rigid(T_1_2), converged=info["converged"], info=info,
-                        result=result, counts=overlap.counts, points_1=overlap.points_1,
-                        points_2=overlap.points_2, warnings=tuple(warnings))
+    registration = Registration(T_1_2=se3.project_to_rigid(T_1_2), converged=info["converged"], info=info,
+                                result=result, counts=overlap.counts, points_1=overlap.points_1,
+                                points_2=overlap.points_2, warnings=tuple(warnings))
+    return judge_local(m1, m2, clouds, registration, timings, sets)
 
 
 # the top-level figures that the local step's result replaces when it is used
