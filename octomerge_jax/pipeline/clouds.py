@@ -14,8 +14,8 @@ from ..registration import Status
 from .config import MergeConfig
 from .timings import Timings
 
-__all__ = ["Clouds", "VOXEL_OVERLAP_VOXELS", "icp_info", "icp_kwargs", "occupied_clouds", "overlap_margin",
-           "point_stats", "select_overlap", "stage_epsilon"]
+__all__ = ["Clouds", "VOXEL_OVERLAP_VOXELS", "align_info", "dense_registration_info", "icp_info", "icp_kwargs",
+           "occupied_clouds", "overlap_margin", "point_stats", "select_overlap", "stage_epsilon"]
 
 VOXEL_OVERLAP_VOXELS = 3.0
 
@@ -78,6 +78,25 @@ def stage_epsilon(cfg: MergeConfig, resolution: float) -> float:
     ``transformation_epsilon``, else ``registration.icp``'s default ``resolution / 60``."""
     eps = cfg.registration.transformation_epsilon
     return float(resolution) / 60.0 if eps is None else float(eps)
+
+
+def align_info(r) -> dict:
+    """An ``AlignResult``'s figures for the report, as ``icp_info`` gives ICP's: ``status``
+    (``int(Status)``), ``converged``, ``restarted``, ``agreement``, ``loss``,
+    ``num_iterations``."""
+    status = Status(int(r.status))
+    return {"status": int(status), "converged": status is Status.CONVERGED, "restarted": bool(np.asarray(r.restarted)),
+            "agreement": float(np.asarray(r.agreement)), "loss": float(np.asarray(r.loss)),
+            "num_iterations": int(np.asarray(r.num_iterations))}
+
+
+def dense_registration_info(dense: dict, stats: dict) -> dict:
+    """The figures of a registration whose transform is the dense alignment's: its status in
+    ICP's fields (``converged``, ``status`` as ``str(Status)``, ``num_iterations``), ICP's point
+    statistics measured at it (``stats``, ``point_stats``) and the dense figures ``dense``
+    (``align_info``) under ``"dense"``."""
+    return {"converged": dense["converged"], "status": str(Status(dense["status"])),
+            "num_iterations": dense["num_iterations"], **stats, "dense": dense}
 
 
 def icp_info(r) -> dict:

@@ -48,8 +48,8 @@ from ..registration.global_search import (CellSets, consistency_score, distinct_
                                           horizontal_pinning, level_rotation, map_cell_sets, net_agreement,
                                           nudge_poses, pose_distance, rotation_z, translation_candidates,
                                           yaw_candidates)
-from .clouds import (icp_info, icp_kwargs, occupied_clouds, overlap_margin, point_stats, select_overlap,
-                     stage_epsilon)
+from .clouds import (align_info, dense_registration_info, icp_info, icp_kwargs, occupied_clouds, overlap_margin,
+                     point_stats, select_overlap, stage_epsilon)
 from .config import MergeConfig
 from .report import MergeError, Registration
 from .timings import Timings
@@ -259,7 +259,8 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
     if best.is_icp:
         figures = icp_info(best.result)
     elif best.result is not None:  # the dense alignment's pose: ICP's point figures measured there
-        figures = {**_dense_info(best.result), **point_stats(p1, p2, best.T_1_2, config, resolution)}
+        dense = {**align_info(best.result), "started_from": "nudged candidate (its ICP slid)"}
+        figures = dense_registration_info(dense, point_stats(p1, p2, best.T_1_2, config, resolution))
     else:
         figures = _no_icp()
     info = {**figures, "verdict": verdict, "global": info_g}
@@ -366,15 +367,6 @@ def _dense_candidate(m1, m2, clouds, T_start, index: int, config: MergeConfig, t
     rc = config.registration
     q = select_overlap(*clouds, T, rc.overlap, overlap_margin(config, float(m1.resolution)))
     return _Refined(T, r, q, index)
-
-
-def _dense_info(r) -> dict:
-    """An ``AlignResult``'s status figures, as ``icp_info`` gives ICP's."""
-    status = Status(int(r.status))
-    return {"converged": status is Status.CONVERGED, "status": str(status),
-            "num_iterations": int(np.asarray(r.num_iterations)),
-            "dense": {"status": int(status), "agreement": float(np.asarray(r.agreement)),
-                      "loss": float(np.asarray(r.loss)), "started_from": "nudged candidate (its ICP slid)"}}
 
 
 def _no_icp() -> dict:

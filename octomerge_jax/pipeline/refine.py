@@ -31,7 +31,8 @@ from .. import se3
 from ..map import OccupancyMap
 from ..registration import Status
 from .candidates import multi_candidates
-from .clouds import Clouds, icp_info, icp_kwargs, occupied_clouds, overlap_margin, point_stats, select_overlap
+from .clouds import (Clouds, align_info, dense_registration_info, icp_info, icp_kwargs, occupied_clouds, overlap_margin,
+                     point_stats, select_overlap)
 from .config import MergeConfig
 from .globalreg import icp_left_start, judge_local, local_cell_sets, register_global
 from .ranking import rank_and_refine
@@ -100,8 +101,7 @@ def register_dense(m1, m2, clouds: Clouds, T_1_2_init, config: MergeConfig, timi
     T_1_2, dense_info, result = refine_dense(m1, m2, T_1_2_init, timings, warnings)
     with timings.stage("evaluate"):
         stats = point_stats(clouds.points_1, clouds.points_2, T_1_2, config, m1.resolution)
-    info = {"converged": dense_info["converged"], "status": str(Status(dense_info["status"])),
-            "num_iterations": dense_info["num_iterations"], **stats, "dense": dense_info}
+    info = dense_registration_info(dense_info, stats)
     counts = {"occupied_1": int(clouds.points_1.shape[0]), "occupied_2": int(clouds.points_2.shape[0])}
     return Registration(T_1_2=T_1_2, converged=info["converged"], info=info, result=result, counts=counts,
                         points_1=clouds.points_1, points_2=clouds.points_2, warnings=tuple(warnings))
@@ -291,11 +291,8 @@ def refine_dense(m1, m2, T_start, timings: Timings, warnings: list[str],
         start_level = int(np.argmax(fits)) if fits.any() else len(fits) - 1  # coarse to fine
     with timings.stage("dense") as stage:
         r = stage.ready(reg.align_dense(m1, m2, np.asarray(T_start, np.float64), levels=levels[start_level:]))
-    status = Status(int(r.status))
-    info = {"status": int(status), "converged": status is Status.CONVERGED, "start_level": start_level,
-            "restarted": bool(np.asarray(r.restarted)),
-            "agreement": float(np.asarray(r.agreement)), "loss": float(np.asarray(r.loss)),
-            "num_iterations": int(np.asarray(r.num_iterations))}
+    info = {**align_info(r), "start_level": start_level}
+    status = Status(info["status"])
     if status.usable:
         return DenseStep(np.asarray(r.T_1_2, np.float64), info, r)
     warnings.append(f"dense alignment failed (status {int(status)}, agreement {info['agreement']:.2f}); "
