@@ -328,17 +328,20 @@ SCENE_RES = {"lab": 0.1, "office": 0.1, "campus": 0.2}
 
 def bench_scenes(scenes, repeats):
     """The default local refinement on the demo's simulated pairs (``sim.make_two_robot_maps``):
-    ``refine="icp"`` (before) against the default ``"icp+dense"`` (after) from the truth, the
-    demo's guess (0.4 / -0.3 m, 0.05 rad yaw) and a guess 0.3 m / 0.1 rad off; error = mean
-    displacement of map 2's occupied voxels [m] (``MergeReport.displacement``); time = the
-    registration's stages (``icp`` + ``dense`` + ``evaluate``), warm, median of ``repeats``."""
-    from octomerge_jax.pipeline import merge
+    ``refine="icp"``, ``"icp+dense"`` without the polish and the default (``"icp+dense"`` with
+    the GICP polish) from the truth, the demo's guess (0.4 / -0.3 m, 0.05 rad yaw) and a guess
+    0.3 m / 0.1 rad off; error = mean displacement of map 2's occupied voxels [m]
+    (``MergeReport.displacement``); time = the registration's stages (``icp`` + ``dense`` +
+    ``gicp`` + ``evaluate``), warm, median of ``repeats``."""
+    from octomerge_jax.pipeline import MergeConfig, merge
     from octomerge_jax.sim import make_two_robot_maps
 
     print(f"\n## default local refinement on the simulated scenes (warm, median of {repeats}); error = mean "
           "displacement of map 2's occupied voxels [m]; 'quarter' = res / 4")
     print(f"{'scene':>7} {'res':>4} {'start':>12} {'start err':>9} | {'icp err':>8} {'it':>4} {'s':>6} | "
-          f"{'icp+dense err':>13} {'s':>6} | {'quarter':>7}")
+          f"{'+dense err':>10} {'s':>6} | {'+gicp err':>9} {'s':>6} | {'quarter':>7}")
+    configs = [MergeConfig().replace(registration=r) for r in
+               ({"refine": "icp"}, {"refine": "icp+dense", "polish": "none"}, {"refine": "icp+dense", "polish": "gicp"})]
     for scene in scenes:
         res = SCENE_RES[scene]
         m1, m2, T = make_two_robot_maps(scene, res)
@@ -347,15 +350,15 @@ def bench_scenes(scenes, repeats):
                   "0.3m/0.1rad": xyz_rpy64(0.18, -0.24, 0.0, 0.0, 0.0, 0.1) @ T}
         for name, T0 in starts.items():
             row = []
-            for refine in ("icp", "icp+dense"):
+            for cfg in configs:
                 times = []
                 for _ in range(repeats + 1):  # the first call compiles
-                    _, rep = merge(m1, m2, T0, refine=refine, T_1_2_true=T)
-                    times.append(sum(rep.timings.get(k, 0.0) for k in ("icp", "dense", "evaluate")))
+                    _, rep = merge(m1, m2, T0, config=cfg, T_1_2_true=T)
+                    times.append(sum(rep.timings.get(k, 0.0) for k in ("icp", "dense", "gicp", "evaluate")))
                 row.append((rep.displacement, rep.icp["num_iterations"], float(np.median(times[1:]))))
-            (e0, it, t0), (e1, _, t1) = row
+            (e0, it, t0), (e1, _, t1), (e2, _, t2) = row
             print(f"{scene:>7} {res:4.2f} {name:>12} {rep.displacement_init:9.3f} | {e0:8.4f} {it:4d} {t0:6.2f} | "
-                  f"{e1:13.4f} {t1:6.2f} | {res / 4:7.3f}", flush=True)
+                  f"{e1:10.4f} {t1:6.2f} | {e2:9.4f} {t2:6.2f} | {res / 4:7.3f}", flush=True)
 
 
 def main():
@@ -369,7 +372,7 @@ def main():
     ap.add_argument("--grid-zmax", type=float, default=1.0)
     ap.add_argument("--skip-sizes", action="store_true")
     ap.add_argument("--scenes", nargs="*", default=[], choices=sorted(SCENE_RES),
-                    help="the default local refinement (icp vs icp+dense) on simulated scenes")
+                    help="the default local refinement (icp, icp+dense, + gicp) on simulated scenes")
     ap.add_argument("--skip-grid", action="store_true")
     ap.add_argument("--global-res", type=float, nargs="*", default=[],
                     help="global registration rows at these resolutions (correlation_search vs Open3D FPFH + RANSAC)")

@@ -15,6 +15,7 @@ __all__ = [
     "OnNotConverged", "ON_NOT_CONVERGED_CHOICES",
     "CoarseMatching", "COARSE_MATCHING_CHOICES",
     "Hypotheses", "HYPOTHESES_CHOICES",
+    "Polish", "POLISH_CHOICES",
 ]
 
 #: How ``fuse`` combines two log-odds where both maps know a voxel (thesis eq. 5.15 for "sum").
@@ -33,6 +34,8 @@ OnNotConverged = Literal["warn", "error", "use_initial"]
 CoarseMatching = Literal["centroid", "symmetric", "nearest"]
 #: Where the guess-free search takes its starting poses.
 Hypotheses = Literal["yaw_grid", "correlation", "both"]
+#: The last step of the dense-ending refinements ("icp+dense", "global").
+Polish = Literal["gicp", "none"]
 
 RULES = get_args(Rule)
 METHODS = get_args(Method)
@@ -42,3 +45,4 @@ OVERLAP_CHOICES = get_args(OverlapMethod)
 ON_NOT_CONVERGED_CHOICES = get_args(OnNotConverged)
 COARSE_MATCHING_CHOICES = get_args(CoarseMatching)
 HYPOTHESES_CHOICES = get_args(Hypotheses)
+POLISH_CHOICES = get_args(Polish)

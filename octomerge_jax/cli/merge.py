@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..pipeline import COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, REFINE_CHOICES, MergeConfig, load_config
+from ..pipeline import (COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, POLISH_CHOICES, REFINE_CHOICES, MergeConfig,
+                        load_config)
 from ..io import save
 from ..io.bags import write_bag
 from ..pipeline import MergeError, icp_trace, merge, transform_from_xyz_rpy
@@ -94,6 +95,9 @@ def register(subparsers) -> None:
     a.add_argument("--coarse-matching", choices=COARSE_MATCHING_CHOICES,
                    help="ICP's coarse stages (default centroid; symmetric: both clouds downsampled, "
                         "see docs/design.md, \"Centroid coarse matching\")")
+    a.add_argument("--polish", choices=POLISH_CHOICES,
+                   help="last step of --refine icp+dense / global: gicp (default: plane-to-plane on the occupied "
+                        "voxels, sub-voxel) or none")
     a.add_argument("--resample", action="store_true",
                    help="allow maps of different resolutions (map 2 is resampled onto map 1's grid)")
     a.add_argument("--strict", action="store_true", help="fail (exit 5) if ICP does not converge")
@@ -144,7 +148,8 @@ def config_from_args(args):
     cfg = load_config(args.config) if getattr(args, "config", None) else MergeConfig()
     reg, tr, fu = {}, {}, {}
     for key, section in (("refine", reg), ("overlap", reg), ("interpolation", tr), ("rule", fu),
-                         ("max_iterations", reg), ("coarse_matching", reg), ("hypotheses", reg)):
+                         ("max_iterations", reg), ("coarse_matching", reg), ("hypotheses", reg),
+                         ("polish", reg)):
         v = getattr(args, key, None)
         if v is not None:
             section[key] = v

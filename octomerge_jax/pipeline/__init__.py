@@ -4,7 +4,7 @@
 from .batch import BatchResult, merge_batch
 from .clouds import VOXEL_OVERLAP_VOXELS, overlap_margin, point_stats
 from .config import (COARSE_MATCHING_CHOICES, DEMO_SCENES, HYPOTHESES_CHOICES, ON_NOT_CONVERGED_CHOICES,
-                     OVERLAP_CHOICES, REFINE_CHOICES, BatchConfig, DemoConfig, FuseConfig, MergeConfig,
+                     OVERLAP_CHOICES, POLISH_CHOICES, REFINE_CHOICES, BatchConfig, DemoConfig, FuseConfig, MergeConfig,
                      RegistrationConfig, TransformConfig, config_from_dict, config_to_dict, validate)
 from .config_file import dumps_toml, load_config, save_config
 from .globalreg import judge_local, register_global
@@ -21,7 +21,7 @@ __all__ = [
     "BatchConfig", "BatchResult", "COARSE_MATCHING_CHOICES", "DEMO_SCENES", "DemoConfig", "EdgeReport", "FuseConfig",
     "ManyReport", "MapReport",
     "HYPOTHESES_CHOICES", "MergeConfig", "MergeError", "MergeReport", "ON_NOT_CONVERGED_CHOICES",
-    "OVERLAP_CHOICES", "REFINE_CHOICES", "Registration", "RegistrationConfig", "Timings", "TransformConfig",
+    "OVERLAP_CHOICES", "POLISH_CHOICES", "REFINE_CHOICES", "Registration", "RegistrationConfig", "Timings", "TransformConfig",
     "VOXEL_OVERLAP_VOXELS", "check_resolutions", "config_from_dict", "config_to_dict", "dense_after_global",
     "dumps_toml", "icp_trace", "judge_local", "load_config", "merge", "merge_batch", "merge_many", "overlap_margin",
     "point_stats",

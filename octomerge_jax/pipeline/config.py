@@ -24,7 +24,7 @@ import types
 import typing
 
 from ..types import (COARSE_MATCHING_CHOICES, HYPOTHESES_CHOICES, ON_NOT_CONVERGED_CHOICES, OVERLAP_CHOICES,
-                     REFINE_CHOICES)
+                     POLISH_CHOICES, REFINE_CHOICES)
 
 __all__ = [
     "RegistrationConfig",
@@ -39,6 +39,7 @@ __all__ = [
     "HYPOTHESES_CHOICES",
     "DEMO_SCENES",
     "COARSE_MATCHING_CHOICES",
+    "POLISH_CHOICES",
     "config_from_dict",
     "config_to_dict",
     "validate",
@@ -86,6 +87,10 @@ class RegistrationConfig:
       candidates' pick is taken over the yaw grid's when only it passes the dense status
       checks (agreement, overlap), else only when its map loss is lower by more than
       ``far_margin`` (relative).
+    - ``polish``: the last step of ``"icp+dense"`` and ``"global"``: ``"gicp"`` (the default:
+      ``registration.gicp`` from the dense result, plane-to-plane on the occupied voxel
+      centres, kept when it moves the pose less than a voxel; ``docs/design.md``,
+      "GICP polishes the default refinement") or ``"none"``.
     - ``on_not_converged``: ICP stopped at ``max_iterations``: ``"warn"`` (use its transform,
       report ``converged = false``), ``"error"`` (fail) or ``"use_initial"`` (merge with the
       guess). Too few inliers is always an error unless ``refine="none"``.
@@ -109,6 +114,7 @@ class RegistrationConfig:
     correlation_hypotheses: int = 8
     correlation_dense: int = 3
     far_margin: float = 0.03
+    polish: str = "gicp"
     on_not_converged: str = "warn"
 
 
@@ -218,6 +224,7 @@ def validate(cfg: MergeConfig) -> None:
     _choice(r.on_not_converged, ON_NOT_CONVERGED_CHOICES, "registration.on_not_converged")
     _choice(r.coarse_matching, COARSE_MATCHING_CHOICES, "registration.coarse_matching")
     _choice(r.hypotheses, HYPOTHESES_CHOICES, "registration.hypotheses")
+    _choice(r.polish, POLISH_CHOICES, "registration.polish")
     _choice(t.interpolation, ("trilinear", "nearest", "thesis"), "transform.interpolation")
     _choice(t.space, ("probability", "log_odds"), "transform.space")
     _choice(f.rule, ("sum", "max", "weighted"), "fuse.rule")

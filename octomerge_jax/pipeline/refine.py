@@ -9,9 +9,11 @@ into the transform used, per ``config.registration.refine``, one function per mo
   (``candidates.py``), picked by the agreement of the two *maps*, then a local ICP step
   (``ranking.py``; ``register_multi``);
 - ``"dense"``: ``align_dense`` (the occupancy fields, gradient-based; ``register_dense``);
-- ``"icp+dense"``: ICP, then the dense alignment from its result (``dense_after_icp``);
+- ``"icp+dense"``: ICP, then the dense alignment from its result (``dense_after_icp``), then
+  the GICP polish (``polish``, per ``registration.polish``);
 - ``"global"``: no guess needed (``globalreg.register_global``; the default of ``merge``
-  without a guess), then the dense alignment from its ICP result (``dense_after_global``).
+  without a guess), then the dense alignment from its ICP result and the polish
+  (``dense_after_global``).
 
 The ICP modes' results are judged by ``globalreg.judge_local`` (a wrong basin: ``"failed"``).
 
@@ -39,8 +41,13 @@ from .ranking import rank_and_refine
 from .report import MergeError, Registration
 from .timings import Timings
 
-__all__ = ["DenseStep", "Overlap", "accept_icp", "dense_after_global", "dense_after_icp", "overlap_for_icp",
+__all__ = ["DenseStep", "Overlap", "accept_icp", "dense_after_global", "dense_after_icp", "overlap_for_icp", "polish",
            "refine_dense", "register", "register_dense", "register_icp", "register_multi", "register_none"]
+
+
+# the GICP polish (docs/design.md, "GICP polishes the default refinement"): correspondences within
+# ICP's last distance, and a result that moves the samples farther than a voxel is no polish
+GICP_DISTANCE_VOXELS, MAX_POLISH_SHIFT_VOXELS = 2.0, 1.0
 
 
 class Overlap(NamedTuple):
@@ -157,6 +164,7 @@ def register_icp(m1, m2, clouds: Clouds, overlap: Overlap, T_1_2_init, result, c
     if config.registration.refine == "icp+dense":
         T_1_2, info = dense_after_icp(m1, m2, clouds, T_1_2, T_1_2_init, info, config, timings, warnings,
                                       from_guess=left)
+        T_1_2, info = polish(m1, m2, clouds.points_1, clouds.points_2, T_1_2, info, config, timings, warnings)
     registration = Registration(T_1_2=se3.project_to_rigid(T_1_2), converged=info["converged"], info=info,
                                 result=result, counts=overlap.counts, points_1=overlap.points_1,
                                 points_2=overlap.points_2, warnings=tuple(warnings))
@@ -262,8 +270,36 @@ def dense_after_global(m1, m2, clouds: Clouds, found: Registration, config: Merg
     T_1_2, dense_info, _ = refine_dense(m1, m2, found.T_1_2, timings, warnings,
                                         within_m=info["correspondence_distance"])
     _add_point_stats(dense_info, clouds, T_1_2, config, m1.resolution, timings)
-    return dataclasses.replace(found, T_1_2=se3.project_to_rigid(T_1_2), info={**info, "dense": dense_info},
-                               warnings=tuple(warnings))
+    T_1_2, info = polish(m1, m2, clouds.points_1, clouds.points_2, T_1_2, {**info, "dense": dense_info}, config,
+                         timings, warnings)
+    return dataclasses.replace(found, T_1_2=se3.project_to_rigid(T_1_2), info=info, warnings=tuple(warnings))
+
+
+def polish(m1, m2, points_1, points_2, T_start, info: dict, config: MergeConfig, timings: Timings,
+           warnings: list[str]) -> tuple[np.ndarray, dict]:
+    """The last step of ``"icp+dense"`` and ``"global"`` (``registration.polish = "gicp"``):
+    ``registration.gicp`` from ``T_start`` of map 2's ``points_2`` onto map 1's ``points_1``
+    (``(n, 3)`` [m], all the occupied voxels of each map: the thesis's bounding-box overlap
+    leaves out matching points, which the rotation needs as lever arms), correspondences within
+    ``GICP_DISTANCE_VOXELS`` (timed as ``gicp``). Its result is used when it is finite, matched
+    at least ``min_inliers`` samples and moved them less than ``MAX_POLISH_SHIFT_VOXELS`` on
+    average (a polish, not a search); otherwise ``T_start`` is kept with a warning. Returns
+    ``(T_1_2 (4, 4) float64, info with the figures under "gicp")``
+    (``docs/design.md``, "GICP polishes the default refinement")."""
+    if config.registration.polish != "gicp" or min(len(points_1), len(points_2)) < config.registration.min_inliers:
+        return np.asarray(T_start, np.float64), info
+    res = m1.resolution
+    with timings.stage("gicp"):
+        r = reg.gicp(m1, m2, points_1, points_2, T_start, max_correspondence_distance=GICP_DISTANCE_VOXELS * res)
+    used = (np.all(np.isfinite(r.T_1_2)) and r.num_inliers >= config.registration.min_inliers
+            and r.shift < MAX_POLISH_SHIFT_VOXELS * res)
+    figures = {"used": bool(used), "converged": r.converged, "num_iterations": r.num_iterations,
+               "num_inliers": r.num_inliers, "num_samples": r.num_samples, "rmse": r.rmse, "shift": r.shift}
+    if not used:
+        warnings.append(f"GICP polish set aside (moved the pose {r.shift:.3g} m, {r.num_inliers} of {r.num_samples} "
+                        "samples matched); the previous transform is kept")
+        return np.asarray(T_start, np.float64), {**info, "gicp": figures}
+    return np.asarray(r.T_1_2, np.float64), {**info, "gicp": figures}
 
 
 def _add_point_stats(dense_info: dict, clouds: Clouds, T_1_2, config: MergeConfig, resolution: float,

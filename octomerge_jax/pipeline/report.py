@@ -83,7 +83,9 @@ class MergeReport:
       the point statistics measured at its transform by ``point_stats``) and its own figures
       under ``dense`` (for ``"icp+dense"``: ICP's fields, and under ``dense`` the dense
       alignment's with the point statistics at the transform used; ``start_level``, the index
-      of the first level solved, and ``restarted``, ``AlignResult.restarted``); for
+      of the first level solved, and ``restarted``, ``AlignResult.restarted``; and under ``gicp``
+      the polish's: ``used``, ``converged``, ``num_iterations``, ``num_inliers``, ``num_samples``,
+      ``rmse`` [m], ``shift`` [m], the samples' mean move); for
       ``"multi"`` also ``best_index`` (the candidate chosen by map agreement,
       ``rank_by_map_agreement``), ``point_best_index`` (``icp_multi``'s own choice),
       ``map_loss`` per candidate, ``num_hypotheses``, ``num_basins``: the ICP runs left after

@@ -1,12 +1,13 @@
 """Registration of two occupancy maps (thesis §5.2.1, §6.1-6.3): occupied-voxel clouds, overlap
 extraction, point-to-point ICP (jitted, differentiable), dense alignment of the occupancy fields,
+GICP on occupied voxel centres (the sub-voxel polish),
 the correlation search over poses, rendezvous initial estimates, error metrics and one status
 vocabulary. The rigid-transform helpers are ``octomerge_jax.se3``'s, re-exported here.
 
 Submodules: ``points``, ``overlap``, ``neighbors``, ``features`` and ``global_search`` (pose
 candidates without a guess), ``_icp`` (private: the function ``icp`` is
 its public face), ``dense``, ``correlation``, ``evaluate``, ``metrics``, ``rendezvous``,
-``status``.
+``status``, ``gicp``.
 """
 
 from ..se3 import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quaternion, to_xyz_rpy, transform_points
@@ -18,6 +19,7 @@ from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best
                     fused_log_odds, level_losses, pose_from_increment, prepare_alignment, problem_loss,
                     score_alignment, solve_alignment, solve_alignment_batch, stack_problems, transformed_occupancy)
 from .evaluate import RegistrationStats, evaluate_registration
+from .gicp import GicpResult, gicp
 from .metrics import point_displacement, rotation_angle_error, rotation_error, translation_distance, translation_error
 from .neighbors import HashGrid, any_within, build_grid, build_grids, nearest
 from .overlap import Overlap, overlap
@@ -40,6 +42,8 @@ __all__ = [
     "fused_log_odds", "level_losses", "pose_from_increment", "prepare_alignment", "problem_loss",
     "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
     "CorrelationResult", "correlation_search",
+    # the GICP polish
+    "GicpResult", "gicp",
     # evaluation and errors
     "RegistrationStats", "evaluate_registration", "point_displacement", "rotation_angle_error", "rotation_error",
     "translation_distance", "translation_error",

@@ -1,0 +1,248 @@
+"""Generalized ICP on occupied voxel centres: the sub-voxel polish of the default refinement.
+
+GICP (Segal, Haehnel and Thrun, "Generalized-ICP", RSS 2009) minimises, over ``T_1_2 = (R, t)``,
+
+    E(T) = sum_j e_j^T (C1_n(j) + R C2_j R^T)^-1 e_j,    e_j = p1_n(j) - (R x_j + t),
+
+over sample points ``x_j`` of map 2 matched to their nearest occupied voxel centre ``p1_n(j)``
+of map 1 within ``max_correspondence_distance``: a plane-to-plane distance. Each covariance is
+that of the occupied voxel centres within ``radius_voxels`` voxels of the point, looked up in
+its own map by Morton key (the 81 lattice offsets of a 2.5-voxel ball; a pruned occupied leaf
+counts as all its voxels), with its eigenvalues replaced by ``(1e-3, 1, 1)``: a disc along the
+local surface, the plane regularisation of fast_gicp / small_gicp. Gauss-Newton steps update
+``T`` on the left (``exp(xi) T``) until the step falls below
+``STEP_ROTATION_RAD`` and ``STEP_TRANSLATION_VOXELS``.
+
+Voxel centres quantise a surface to the lattice; a plane fitted to a surface's voxels
+averages the quantisation out, which point-to-point ICP and the dense loss cannot
+(``docs/design.md``, "GICP polishes the default refinement").
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import morton, se3, tree
+from .._ops import bucket_capacity
+from ..map import OccupancyMap
+from . import neighbors
+from ._icp import pad_points_host
+
+__all__ = ["GicpResult", "gicp", "lattice_covariances", "ball_offsets", "smallest_eigenvector"]
+
+PLANE_EPSILON = 1e-3  # the regularised covariances' normal eigenvalue (in-plane ones are 1)
+# a step below both ends the iteration (docs/design.md, "GICP polishes the default refinement")
+STEP_ROTATION_RAD, STEP_TRANSLATION_VOXELS = 1e-4, 1e-2
+STALL_PATIENCE = 3  # steps without a new lowest energy end a cycle of correspondence sets
+
+
+class GicpResult(NamedTuple):
+    """``gicp``'s outcome (host values)."""
+
+    T_1_2: np.ndarray  # (4, 4) float64, the result (map 2's frame into map 1's)
+    num_iterations: int  # Gauss-Newton steps taken
+    converged: bool  # the last step fell below the thresholds within max_iterations
+    num_inliers: int  # samples matched within max_correspondence_distance at the result
+    num_samples: int  # map 2's sample points
+    rmse: float  # [m] root mean square point distance of the inliers at the result
+    shift: float  # [m] mean displacement of the samples between the start and the result
+
+
+def ball_offsets(radius_voxels: float) -> np.ndarray:
+    """``(k, 3)`` int32 lattice offsets within ``radius_voxels`` of the origin (81 for 2.5)."""
+    r = int(np.floor(radius_voxels))
+    g = np.arange(-r, r + 1)
+    o = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    return o[np.sum(o * o, axis=1) <= radius_voxels ** 2 + 1e-9].astype(np.int32)
+
+
+def lattice_covariances(m: OccupancyMap, points, occupied_log_odds, offsets):
+    """Plane-regularised covariances ``(P, 3, 3)`` float32 [unitless] of voxel centres ``points
+    (P, 3)`` [m] of ``m``'s frame: the covariance of the occupied voxel centres of ``m`` at the
+    lattice ``offsets (k, 3)`` around each point (``log_odds >= occupied_log_odds``), its
+    eigenvalues set to ``(PLANE_EPSILON, 1, 1)``. A point with fewer than 3 occupied neighbours
+    gets the identity."""
+    res = jnp.float32(m.resolution)
+    base = jnp.round(points / res - 0.5).astype(jnp.int32)  # voxel index of each centre
+    keys = base[:, None, :] + morton.KEY_OFFSET + jnp.asarray(offsets)[None]  # (P, k, 3)
+    in_range = jnp.all((keys >= 0) & (keys < 2 * morton.KEY_OFFSET), axis=-1)
+    row, known = tree.lookup_words(m, morton.keys_to_words(jnp.clip(keys, 0, 2 * morton.KEY_OFFSET - 1)))
+    w = (known & in_range & (m.log_odds[row] >= occupied_log_odds)).astype(jnp.float32)  # (P, k)
+    o = jnp.asarray(offsets, jnp.float32)
+    n = jnp.sum(w, axis=1)
+    mean = (w @ o) / jnp.maximum(n, 1.0)[:, None]
+    d = o[None] - mean[:, None, :]
+    cov = jnp.einsum("pk,pki,pkj->pij", w, d, d) / jnp.maximum(n, 1.0)[:, None, None]
+    normal = smallest_eigenvector(cov)
+    C = jnp.eye(3, dtype=jnp.float32) - (1.0 - PLANE_EPSILON) * normal[:, :, None] * normal[:, None, :]
+    return jnp.where((n >= 3)[:, None, None], C, jnp.eye(3, dtype=jnp.float32))
+
+
+def smallest_eigenvector(A):
+    """Unit eigenvector ``(P, 3)`` of the smallest eigenvalue of symmetric ``A (P, 3, 3)``, in
+    closed form (Smith 1961's eigenvalue, then the largest cross product of two rows of
+    ``A - lambda I``): a batched ``eigh`` on XLA:CPU costs as much as the whole GICP step. Where
+    that eigenvalue is repeated (a line, an isotropic blob) any unit vector orthogonal to the
+    dominant row is returned."""
+    q = jnp.trace(A, axis1=1, axis2=2) / 3.0
+    off = A[:, 0, 1] ** 2 + A[:, 0, 2] ** 2 + A[:, 1, 2] ** 2
+    diag = jnp.diagonal(A, axis1=1, axis2=2) - q[:, None]
+    p = jnp.sqrt((jnp.sum(diag ** 2, axis=1) + 2.0 * off) / 6.0)
+    eye = jnp.eye(3, dtype=A.dtype)
+    B = (A - q[:, None, None] * eye) / jnp.maximum(p, 1e-12)[:, None, None]
+    phi = jnp.arccos(jnp.clip(jnp.linalg.det(B) / 2.0, -1.0, 1.0)) / 3.0
+    lam = q + 2.0 * p * jnp.cos(phi + 2.0 * jnp.pi / 3.0)  # the smallest eigenvalue
+    M = A - lam[:, None, None] * eye
+    c = jnp.stack([jnp.cross(M[:, 0], M[:, 1]), jnp.cross(M[:, 0], M[:, 2]), jnp.cross(M[:, 1], M[:, 2])], 1)
+    norms = jnp.linalg.norm(c, axis=-1)  # (P, 3)
+    best = jnp.take_along_axis(c, jnp.argmax(norms, axis=1)[:, None, None], axis=1)[:, 0]
+    best_norm = jnp.max(norms, axis=1)
+    # repeated smallest eigenvalue: a vector orthogonal to the dominant row of M
+    row = jnp.take_along_axis(M, jnp.argmax(jnp.linalg.norm(M, axis=-1), axis=1)[:, None, None], axis=1)[:, 0]
+    axis = jnp.where((jnp.abs(row[:, 0]) < 0.9 * jnp.linalg.norm(row, axis=-1))[:, None], eye[0], eye[1])
+    ortho = jnp.cross(row, axis)
+    ortho = jnp.where((jnp.linalg.norm(ortho, axis=-1) > 1e-12)[:, None], ortho, eye[2])
+    scale = jnp.max(jnp.abs(M), axis=(1, 2))
+    v = jnp.where((best_norm > 1e-6 * jnp.maximum(scale, 1e-12) ** 2)[:, None], best, ortho)
+    return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _settled(step, res):
+    """The last step ``(rotation [rad], translation [m])`` is below both thresholds."""
+    return (step[0] < STEP_ROTATION_RAD) & (step[1] < STEP_TRANSLATION_VOXELS * res)
+
+
+class _State(NamedTuple):
+    T: jax.Array  # (4, 4) float32, map 2's frame into map 1's centred frame
+    k: jax.Array  # () int32 steps taken
+    step: jax.Array  # (2,) float32 last step: rotation [rad], translation [m]
+    best_T: jax.Array  # (4, 4) float32, the iterate of the lowest energy so far
+    best_energy: jax.Array  # () float32, its mean GICP energy over the inliers
+    stall: jax.Array  # () int32, steps since the energy last reached a new low
+
+
+@partial(jax.jit, static_argnames=("offsets", "max_iterations"))
+def _solve(m1, m2, grid, samples, count, T0, centre, thresholds, mcd, *, offsets, max_iterations):
+    """Gauss-Newton on the GICP energy in map 1's frame centred at ``centre``: ``(T (4, 4)
+    float32, steps, settled, inliers, rmse [m])``. Correspondence sets can cycle; then the
+    iterate of the lowest energy is returned once it has not been beaten for
+    ``STALL_PATIENCE`` steps."""
+    off = np.asarray(offsets, np.int32)
+    valid = jnp.arange(samples.shape[0]) < count
+    C2 = lattice_covariances(m2, samples, thresholds[1], off)
+    mcd2 = mcd * mcd
+    res = jnp.float32(m1.resolution)
+
+    def matches(T):
+        y = samples @ T[:3, :3].T + T[:3, 3]
+        d2, idx, p = neighbors.nearest_with_points(grid, y, count=count)
+        inlier = valid & (idx >= 0) & (d2 <= mcd2)
+        return y, d2, p, inlier
+
+    def body(s: _State) -> _State:
+        y, _, p, inlier = matches(s.T)
+        C1 = lattice_covariances(m1, jnp.where(inlier[:, None], p + centre, 0.0), thresholds[0], off)
+        R = s.T[:3, :3]
+        W = jnp.linalg.inv(C1 + jnp.einsum("ij,pjk,lk->pil", R, C2, R))
+        W = jnp.where(inlier[:, None, None], W, 0.0)
+        e = jnp.where(inlier[:, None], p - y, 0.0)
+        J = jnp.concatenate([se3.skew(y), -jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), y.shape + (3,))], -1)
+        energy = jnp.einsum("pa,pab,pb->", e, W, e) / jnp.maximum(jnp.sum(inlier), 1).astype(jnp.float32)
+        better = energy < s.best_energy * (1.0 - 1e-4)
+        H = jnp.einsum("pai,pab,pbj->ij", J, W, J)
+        g = jnp.einsum("pai,pab,pb->i", J, W, e)
+        dx = -jnp.linalg.solve(H + 1e-6 * jnp.trace(H) * jnp.eye(6, dtype=jnp.float32), g)
+        dT = se3.from_rotation_translation(se3.so3_exp(dx[:3]), dx[3:])
+        step = jnp.stack([jnp.linalg.norm(dx[:3]), jnp.linalg.norm(dx[3:])])
+        return _State(dT @ s.T, s.k + 1, jnp.where(jnp.all(jnp.isfinite(dx)), step, jnp.inf),
+                      jnp.where(better, s.T, s.best_T), jnp.where(better, energy, s.best_energy),
+                      jnp.where(better, 0, s.stall + 1))
+
+    def cond(s: _State):
+        return ((s.k < max_iterations) & ~_settled(s.step, res) & jnp.all(jnp.isfinite(s.step))
+                & (s.stall < STALL_PATIENCE))
+
+    s = jax.lax.while_loop(cond, body, _State(T0, jnp.int32(0), jnp.full((2,), 1e30, jnp.float32), T0,
+                                              jnp.float32(jnp.inf), jnp.int32(0)))
+    settled = _settled(s.step, res)
+    T = jnp.where(settled, s.T, s.best_T)
+    _, d2, _, inlier = matches(T)
+    n = jnp.sum(inlier)
+    rmse = jnp.sqrt(jnp.sum(jnp.where(inlier, d2, 0.0)) / jnp.maximum(n, 1).astype(jnp.float32))
+    return T, s.k, settled | (s.stall >= STALL_PATIENCE), n, rmse
+
+
+def _near_box(points, other, T_1_2, pad: float, inverse: bool) -> np.ndarray:
+    """The rows of ``points`` inside the bounding box of ``other`` (``inverse``: ``points`` of map
+    2 against map 1's ``other``; else ``points`` of map 1 against map 2's) under ``T_1_2``, grown
+    by ``pad`` [m]; all of ``points`` when fewer than 6 are inside."""
+    R, t = T_1_2[:3, :3], T_1_2[:3, 3]
+    q = points @ R.T + t if inverse else points
+    o = other if inverse else other @ R.T + t
+    inside = np.all((q >= o.min(axis=0) - pad) & (q <= o.max(axis=0) + pad), axis=1)
+    return points[inside] if inside.sum() >= 6 else points
+
+
+def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, max_correspondence_distance: float,
+         num_samples: int = 16384, radius_voxels: float = 2.5, max_iterations: int = 30, seed: int = 0) -> GicpResult:
+    """GICP of map 2 onto map 1 from ``T_1_2_init`` ``(4, 4)``.
+
+    Args:
+      m1, m2: the maps (``m1.resolution == m2.resolution``); their covariances are looked up in them.
+      points_1: ``(n1, 3)`` [m] occupied voxel centres of map 1 (the targets: all of them; those
+        beyond the samples' bounding box under the start, by twice the correspondence
+        distance, are left out).
+      points_2: ``(n2, 3)`` [m] occupied voxel centres of map 2 (all of them); an even random
+        subset of at most ``num_samples`` (``seed``) of those inside map 1's grown bounding box
+        under the start are the sources.
+      max_correspondence_distance: [m] matches farther than this are left out (e.g. 2 voxels).
+      radius_voxels: the lattice neighbourhood of the covariances [voxels].
+    Returns a ``GicpResult``; ``converged`` is False when the steps neither settled nor cycled
+    within ``max_iterations``, or went non-finite (then ``T_1_2`` is the start).
+    Raises ``ValueError`` for a resolution mismatch or a cloud of fewer than 6 points.
+    """
+    if abs(m1.resolution - m2.resolution) > 1e-9 * m1.resolution:
+        raise ValueError(f"gicp: resolutions differ ({m1.resolution} vs {m2.resolution})")
+    p1 = np.asarray(points_1, np.float64).reshape(-1, 3)
+    p2 = np.asarray(points_2, np.float64).reshape(-1, 3)
+    for name, p in (("points_1", p1), ("points_2", p2)):
+        if p.shape[0] < 6:
+            raise ValueError(f"gicp: {name} has {p.shape[0]} points, fewer than 6")
+    T_init = np.asarray(T_1_2_init, np.float64)
+    # only points that can find a partner (the pose moves little): each cloud cut to the other's
+    # bounding box under the start, grown by twice the correspondence distance
+    pad = 2.0 * float(max_correspondence_distance) + 2.0 * m1.resolution
+    p2 = _near_box(p2, p1, T_init, pad, inverse=True)
+    if p2.shape[0] > num_samples:
+        p2 = p2[np.sort(np.random.default_rng(seed).choice(p2.shape[0], num_samples, replace=False))]
+    p1 = _near_box(p1, p2, T_init, pad, inverse=False)
+    centre = p1.mean(axis=0)
+    target, n1 = pad_points_host(p1 - centre, None, "points_1")
+    samples, n2 = pad_points_host(p2, bucket_capacity(min(num_samples, p2.shape[0])), "points_2")
+    grid = neighbors.build_grid(jnp.asarray(target), jnp.int32(n1), float(max_correspondence_distance),
+                                table_size=neighbors.grid_table_size(target.shape[0], 4.0))
+    T0 = T_init.copy()
+    T0[:3, 3] -= centre
+    thresholds = jnp.asarray([np.float32(np.asarray(m.params.occupancy_threshold_log_odds)) for m in (m1, m2)])
+    offsets = tuple(map(tuple, ball_offsets(radius_voxels).tolist()))
+    T, k, settled, n_in, rmse = _solve(m1, m2, grid, jnp.asarray(samples), jnp.int32(n2), jnp.asarray(T0, jnp.float32),
+                                       jnp.asarray(centre, jnp.float32), thresholds,
+                                       jnp.float32(max_correspondence_distance), offsets=offsets,
+                                       max_iterations=int(max_iterations))
+    T = np.asarray(T, np.float64)
+    finite = bool(np.all(np.isfinite(T)))
+    if finite:
+        T[:3, 3] += centre
+        T = se3.project_to_rigid(T)
+    else:
+        T = T_init
+    k = int(k)
+    converged = finite and bool(settled)
+    shift = float(np.mean(np.linalg.norm((p2 @ T[:3, :3].T + T[:3, 3]) - (p2 @ T_init[:3, :3].T + T_init[:3, 3]),
+                                         axis=1)))
+    return GicpResult(T, k, bool(converged), int(n_in), int(p2.shape[0]), float(rmse), shift)
