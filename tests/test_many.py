@@ -90,9 +90,7 @@ def test_merge_many_command_input_errors(tmp_path, capsys):
     # best poses are wrong (one called "ok"), the right ones are among their candidates, and the
     # other pairs' agreement picks them (consensus.choose_candidates)
     ("office", 4, 0.2),
-    pytest.param("campus", 5, 0.5, marks=pytest.mark.xfail(
-        strict=False, reason="all 5 maps are placed, but map 4, at the end of an open chain of tile pairs, ends "
-                             "0.014 rad / 0.65 m off (0.01 rad and a voxel asked)"))])
+    ("campus", 5, 0.5)])
 def test_team_without_guesses(scene, n, resolution):
     """N robots in random frames (fixed seed): every transform within a voxel and 0.01 rad of the
     truth, every pairwise result either kept or rejected with a reason."""
