@@ -12,7 +12,7 @@ from .many import merge_many
 from .many_report import EdgeReport, ManyReport, MapReport
 from .merging import check_resolutions, merge, resample_to_resolution, transform_and_fuse, transform_from_xyz_rpy
 from .ranking import rank_by_map_agreement
-from .refine import dense_after_global, register
+from .refine import dense_after_global, polish, register
 from .report import MergeError, MergeReport, Registration
 from .timings import Timings, stage_listener
 from .trace import icp_trace
@@ -24,7 +24,7 @@ __all__ = [
     "OVERLAP_CHOICES", "POLISH_CHOICES", "REFINE_CHOICES", "Registration", "RegistrationConfig", "Timings", "TransformConfig",
     "VOXEL_OVERLAP_VOXELS", "check_resolutions", "config_from_dict", "config_to_dict", "dense_after_global",
     "dumps_toml", "icp_trace", "judge_local", "load_config", "merge", "merge_batch", "merge_many", "overlap_margin",
-    "point_stats",
+    "point_stats", "polish",
     "rank_by_map_agreement", "register", "register_global", "resample_to_resolution", "save_config",
     "transform_and_fuse", "transform_from_xyz_rpy", "validate",
     "stage_listener",  # --- bags (progress)

@@ -46,7 +46,7 @@ class GicpResult(NamedTuple):
 
     T_1_2: np.ndarray  # (4, 4) float64, the result (map 2's frame into map 1's)
     num_iterations: int  # Gauss-Newton steps taken
-    converged: bool  # the last step fell below the thresholds within max_iterations
+    converged: bool  # within max_iterations the step fell below the thresholds or the energy stopped falling
     num_inliers: int  # samples matched within max_correspondence_distance at the result
     num_samples: int  # map 2's sample points
     rmse: float  # [m] root mean square point distance of the inliers at the result
