@@ -286,7 +286,8 @@ def polish(m1, m2, points_1, points_2, T_start, info: dict, config: MergeConfig,
     average (a polish, not a search); otherwise ``T_start`` is kept with a warning. Returns
     ``(T_1_2 (4, 4) float64, info with the figures under "gicp")``
     (``docs/design.md``, "GICP polishes the default refinement")."""
-    if config.registration.polish != "gicp" or min(len(points_1), len(points_2)) < config.registration.min_inliers:
+    fewest = max(config.registration.min_inliers, reg.GICP_MIN_POINTS)
+    if config.registration.polish != "gicp" or min(len(points_1), len(points_2)) < fewest:
         return np.asarray(T_start, np.float64), info
     res = m1.resolution
     with timings.stage("gicp"):

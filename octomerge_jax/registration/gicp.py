@@ -10,8 +10,9 @@ that of the occupied voxel centres within ``radius_voxels`` voxels of the point,
 its own map by Morton key (the 81 lattice offsets of a 2.5-voxel ball; a pruned occupied leaf
 counts as all its voxels), with its eigenvalues replaced by ``(1e-3, 1, 1)``: a disc along the
 local surface, the plane regularisation of fast_gicp / small_gicp. Gauss-Newton steps update
-``T`` on the left (``exp(xi) T``) until the step falls below
-``STEP_ROTATION_RAD`` and ``STEP_TRANSLATION_VOXELS``.
+``T`` on the left (``exp(xi) T``) until the step falls below ``STEP_ROTATION_RAD`` and
+``STEP_TRANSLATION_VOXELS``, or the energy has not reached a new low for ``STALL_PATIENCE``
+steps (then the lowest-energy iterate is returned).
 
 Voxel centres quantise a surface to the lattice; a plane fitted to a surface's voxels
 averages the quantisation out, which point-to-point ICP and the dense loss cannot
@@ -33,12 +34,13 @@ from ..map import OccupancyMap
 from . import neighbors
 from ._icp import pad_points_host
 
-__all__ = ["GicpResult", "gicp", "lattice_covariances", "ball_offsets", "smallest_eigenvector"]
+__all__ = ["GICP_MIN_POINTS", "GicpResult", "gicp", "lattice_covariances", "ball_offsets", "smallest_eigenvector"]
 
 PLANE_EPSILON = 1e-3  # the regularised covariances' normal eigenvalue (in-plane ones are 1)
 # a step below both ends the iteration (docs/design.md, "GICP polishes the default refinement")
 STEP_ROTATION_RAD, STEP_TRANSLATION_VOXELS = 1e-4, 1e-2
 STALL_PATIENCE = 3  # steps without a new lowest energy end a cycle of correspondence sets
+GICP_MIN_POINTS = 6  # fewer points in either cloud is an error (a rigid pose needs 3; 6 for some redundancy)
 
 
 class GicpResult(NamedTuple):
@@ -180,12 +182,12 @@ def _solve(m1, m2, grid, samples, count, T0, centre, thresholds, mcd, *, offsets
 def _near_box(points, other, T_1_2, pad: float, inverse: bool) -> np.ndarray:
     """The rows of ``points`` inside the bounding box of ``other`` (``inverse``: ``points`` of map
     2 against map 1's ``other``; else ``points`` of map 1 against map 2's) under ``T_1_2``, grown
-    by ``pad`` [m]; all of ``points`` when fewer than 6 are inside."""
+    by ``pad`` [m]; all of ``points`` when fewer than ``GICP_MIN_POINTS`` are inside."""
     R, t = T_1_2[:3, :3], T_1_2[:3, 3]
     q = points @ R.T + t if inverse else points
     o = other if inverse else other @ R.T + t
     inside = np.all((q >= o.min(axis=0) - pad) & (q <= o.max(axis=0) + pad), axis=1)
-    return points[inside] if inside.sum() >= 6 else points
+    return points[inside] if inside.sum() >= GICP_MIN_POINTS else points
 
 
 def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, max_correspondence_distance: float,
@@ -204,15 +206,15 @@ def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, 
       radius_voxels: the lattice neighbourhood of the covariances [voxels].
     Returns a ``GicpResult``; ``converged`` is False when the steps neither settled nor cycled
     within ``max_iterations``, or went non-finite (then ``T_1_2`` is the start).
-    Raises ``ValueError`` for a resolution mismatch or a cloud of fewer than 6 points.
+    Raises ``ValueError`` for a resolution mismatch or a cloud of fewer than ``GICP_MIN_POINTS``.
     """
     if abs(m1.resolution - m2.resolution) > 1e-9 * m1.resolution:
         raise ValueError(f"gicp: resolutions differ ({m1.resolution} vs {m2.resolution})")
     p1 = np.asarray(points_1, np.float64).reshape(-1, 3)
     p2 = np.asarray(points_2, np.float64).reshape(-1, 3)
     for name, p in (("points_1", p1), ("points_2", p2)):
-        if p.shape[0] < 6:
-            raise ValueError(f"gicp: {name} has {p.shape[0]} points, fewer than 6")
+        if p.shape[0] < GICP_MIN_POINTS:
+            raise ValueError(f"gicp: {name} has {p.shape[0]} points, fewer than {GICP_MIN_POINTS}")
     T_init = np.asarray(T_1_2_init, np.float64)
     # only points that can find a partner (the pose moves little): each cloud cut to the other's
     # bounding box under the start, grown by twice the correspondence distance
