@@ -14,8 +14,7 @@ from .. import se3
 from ..budget import current_budget, memory_budget
 from ..kernel_store import compile_listener
 from ..map import OccupancyMap
-from ..pipeline import MergeConfig, Timings, polish, transform_and_fuse
-from ..registration import occupied_points
+from ..pipeline import MergeConfig, Timings, transform_and_fuse
 
 __all__ = ["compile_ahead", "BYTES_PER_ROW", "SHARE_OF_BUDGET", "UNGUESSED_YAW_RAD"]
 
@@ -39,9 +38,10 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     """Within the block (one ``merge`` of ``m1`` and ``m2`` with ``config``), the first time the
     registration compiles a stored kernel afresh (``kernel_store.compile_listener``: only with
     the kernel store open and the program in neither the process nor the store), a second
-    thread runs the rest of the merge (``transform_and_fuse``, and the GICP polish where the
-    refinement ends with it) from ``T_1_2`` ((4, 4); the guess; ``None``: a turn by
-    ``UNGUESSED_YAW_RAD``) and drops its result. Its programs'
+    thread runs the rest of the merge (``transform_and_fuse``) from ``T_1_2`` ((4, 4); the
+    guess; ``None``: a turn by ``UNGUESSED_YAW_RAD``) and drops its result. The GICP polish is
+    not worked ahead: two threads running its program at once deadlocked XLA:CPU
+    (``docs/design.md``, "Compiling the merge's later kernels during the registration"). Its programs'
     shapes are bucketed, so they are the ones the real merge needs unless the final transform
     changes a bucket; the real merge then loads them, or waits for the thread compiling them,
     instead of compiling them after the registration. A warm merge starts no thread. A pair
@@ -58,8 +58,6 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     def work():
         with memory_budget(budget), contextlib.suppress(Exception):
             jax.block_until_ready(transform_and_fuse(m1, m2, T, config, Timings())[1:])
-            if config.registration.refine in ("icp+dense", "global"):  # the GICP polish's program
-                polish(m1, m2, occupied_points(m1), occupied_points(m2), T, {}, config, Timings(), [])
 
     def on_compile(kernel: str):
         if not threads and ".registration." in kernel:
