@@ -80,6 +80,12 @@ class OccupancyParams:
         return cls(logit(prob_hit), logit(prob_miss), logit(clamp_min), logit(clamp_max),
                    logit(occupancy_threshold))
 
+    @property
+    def occupancy_threshold_host(self) -> np.float32:
+        """The occupancy threshold [log-odds] as a host ``np.float32``: host comparisons with
+        float32 log-odds exactly as on the device, without a jitted comparison per leaf count."""
+        return np.float32(np.asarray(self.occupancy_threshold_log_odds))
+
     def host(self) -> dict[str, float]:
         """The parameters as Python floats (log-odds), for reports and I/O."""
         return {f.name: float(np.asarray(getattr(self, f.name))) for f in dataclasses.fields(self)}

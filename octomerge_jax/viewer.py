@@ -56,7 +56,7 @@ def voxel_boxes(m: OccupancyMap, *, occupied: bool = True, max_boxes: int = 200_
     if max_boxes < 1:
         raise ValueError(f"max_boxes must be at least 1, got {max_boxes}")
     leaves = m.leaves()
-    thr = np.float32(np.asarray(m.params.occupancy_threshold_log_odds))
+    thr = m.params.occupancy_threshold_host
     keep = leaves.log_odds > thr if occupied else leaves.log_odds <= thr
     centers, sizes = leaves.centers[keep], leaves.sizes[keep]
     k = 0

@@ -75,7 +75,7 @@ def _displacements(m2: OccupancyMap, T_true, *Ts, max_points: int = 100_000) -> 
     if T_true is None:
         return (None,) * len(Ts)
     L = m2.leaves()
-    p = L.centers[L.log_odds > np.float32(np.asarray(m2.params.occupancy_threshold_log_odds))]
+    p = L.centers[L.log_odds > m2.params.occupancy_threshold_host]
     if len(p) == 0:
         p = L.centers
     p = p[:: max(1, -(-len(p) // max_points))]

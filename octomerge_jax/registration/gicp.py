@@ -230,7 +230,7 @@ def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, 
                                 table_size=neighbors.grid_table_size(target.shape[0], 4.0))
     T0 = T_init.copy()
     T0[:3, 3] -= centre
-    thresholds = jnp.asarray([np.float32(np.asarray(m.params.occupancy_threshold_log_odds)) for m in (m1, m2)])
+    thresholds = jnp.asarray([m.params.occupancy_threshold_host for m in (m1, m2)])
     offsets = tuple(map(tuple, ball_offsets(radius_voxels).tolist()))
     T, k, settled, n_in, rmse = _solve(m1, m2, grid, jnp.asarray(samples), jnp.int32(n2), jnp.asarray(T0, jnp.float32),
                                        jnp.asarray(centre, jnp.float32), thresholds,

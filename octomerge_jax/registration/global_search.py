@@ -141,7 +141,7 @@ def free_space(m: OccupancyMap, voxel: float, max_points: int = 4_000_000) -> tu
     sub-cell's). Raises ``ValueError`` above ``max_points`` points."""
     L = m.leaves()
     # a host threshold: the device scalar would compile a comparison per leaf count
-    free = L.log_odds < np.float32(np.asarray(m.params.occupancy_threshold_log_odds))
+    free = L.log_odds < m.params.occupancy_threshold_host
     centers, sizes = L.centers[free], L.sizes[free]
     out, volumes = [], []
     for size in np.unique(sizes):
