@@ -281,9 +281,10 @@ def polish(m1, m2, points_1, points_2, T_start, info: dict, config: MergeConfig,
     ``registration.gicp`` from ``T_start`` of map 2's ``points_2`` onto map 1's ``points_1``
     (``(n, 3)`` [m], all the occupied voxels of each map: the thesis's bounding-box overlap
     leaves out matching points, which the rotation needs as lever arms), correspondences within
-    ``GICP_DISTANCE_VOXELS`` (timed as ``gicp``). Its result is used when it is finite, matched
-    at least ``min_inliers`` samples and moved them less than ``MAX_POLISH_SHIFT_VOXELS`` on
-    average (a polish, not a search); otherwise ``T_start`` is kept with a warning. Returns
+    ``GICP_DISTANCE_VOXELS`` (timed as ``gicp``). Its result (finite: ``gicp`` returns the
+    start otherwise) is used when it matched at least ``min_inliers`` samples and moved them
+    less than ``MAX_POLISH_SHIFT_VOXELS`` on average (a polish, not a search); otherwise
+    ``T_start`` is kept with a warning. Returns
     ``(T_1_2 (4, 4) float64, info with the figures under "gicp")``
     (``docs/design.md``, "GICP polishes the default refinement")."""
     fewest = max(config.registration.min_inliers, reg.GICP_MIN_POINTS)
@@ -292,15 +293,13 @@ def polish(m1, m2, points_1, points_2, T_start, info: dict, config: MergeConfig,
     res = m1.resolution
     with timings.stage("gicp"):
         r = reg.gicp(m1, m2, points_1, points_2, T_start, max_correspondence_distance=GICP_DISTANCE_VOXELS * res)
-    used = (np.all(np.isfinite(r.T_1_2)) and r.num_inliers >= config.registration.min_inliers
-            and r.shift < MAX_POLISH_SHIFT_VOXELS * res)
-    figures = {"used": bool(used), "converged": r.converged, "num_iterations": r.num_iterations,
+    used = r.num_inliers >= config.registration.min_inliers and r.shift < MAX_POLISH_SHIFT_VOXELS * res
+    figures = {"used": used, "converged": r.converged, "num_iterations": r.num_iterations,
                "num_inliers": r.num_inliers, "num_samples": r.num_samples, "rmse": r.rmse, "shift": r.shift}
     if not used:
         warnings.append(f"GICP polish set aside (moved the pose {r.shift:.3g} m, {r.num_inliers} of {r.num_samples} "
                         "samples matched); the previous transform is kept")
-        return np.asarray(T_start, np.float64), {**info, "gicp": figures}
-    return np.asarray(r.T_1_2, np.float64), {**info, "gicp": figures}
+    return np.asarray(r.T_1_2 if used else T_start, np.float64), {**info, "gicp": figures}
 
 
 def _add_point_stats(dense_info: dict, clouds: Clouds, T_1_2, config: MergeConfig, resolution: float,

@@ -245,6 +245,5 @@ def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, 
         T = T_init
     k = int(k)
     converged = finite and bool(settled)
-    shift = float(np.mean(np.linalg.norm((p2 @ T[:3, :3].T + T[:3, 3]) - (p2 @ T_init[:3, :3].T + T_init[:3, 3]),
-                                         axis=1)))
+    shift = float(np.mean(np.linalg.norm(p2 @ (T[:3, :3] - T_init[:3, :3]).T + (T[:3, 3] - T_init[:3, 3]), axis=1)))
     return GicpResult(T, k, bool(converged), int(n_in), int(p2.shape[0]), float(rmse), shift)
