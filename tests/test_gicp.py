@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from octomerge_jax import morton
+from octomerge_jax import morton, se3
 from octomerge_jax import registration as reg
 from octomerge_jax.map import from_leaves
 from octomerge_jax.registration.gicp import PLANE_EPSILON, ball_offsets, lattice_covariances, smallest_eigenvector
@@ -73,31 +73,17 @@ def _numpy_gicp(m1, m2, p1, p2, T, mcd, iterations=40):
         ok = d2[np.arange(len(y)), j] <= mcd ** 2
         y, e = y[ok], p1[j[ok]] - y[ok]
         W = np.linalg.inv(C1[j[ok]] + np.einsum("ij,njk,lk->nil", R, C2[ok], R))
-        J = np.concatenate([_skew(y), -np.broadcast_to(np.eye(3), y.shape + (3,))], -1)
+        J = np.concatenate([se3.skew(y, xp=np), -np.broadcast_to(np.eye(3), y.shape + (3,))], -1)
         H = np.einsum("nai,nab,nbj->ij", J, W, J)
         g = np.einsum("nai,nab,nb->i", J, W, e)
         dx = -np.linalg.solve(H, g)
         dT = np.eye(4)
-        dT[:3, :3] = _so3_exp(dx[:3])
+        dT[:3, :3] = se3.so3_exp(dx[:3], xp=np)
         dT[:3, 3] = dx[3:]
         T = dT @ T
         if np.linalg.norm(dx[:3]) < 1e-7 and np.linalg.norm(dx[3:]) < 1e-7:
             break
     return T
-
-
-def _skew(v):
-    z = np.zeros(len(v))
-    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1),
-                     np.stack([-v[:, 1], v[:, 0], z], -1)], 1)
-
-
-def _so3_exp(w):
-    th = np.linalg.norm(w)
-    K = _skew(w[None])[0]
-    if th < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th ** 2 * K @ K
 
 
 @pytest.fixture(scope="module")
