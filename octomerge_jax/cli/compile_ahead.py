@@ -40,8 +40,7 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     the kernel store open and the program in neither the process nor the store), a second
     thread runs the rest of the merge (``transform_and_fuse``) from ``T_1_2`` ((4, 4); the
     guess; ``None``: a turn by ``UNGUESSED_YAW_RAD``) and drops its result. The GICP polish is
-    not worked ahead: two threads running its program at once deadlocked XLA:CPU
-    (``docs/design.md``, "Compiling the merge's later kernels during the registration"). Its programs'
+    not worked ahead (``docs/design.md``, "Compiling the merge's later kernels during the registration"). Its programs'
     shapes are bucketed, so they are the ones the real merge needs unless the final transform
     changes a bucket; the real merge then loads them, or waits for the thread compiling them,
     instead of compiling them after the registration. A warm merge starts no thread. A pair
