@@ -9,7 +9,8 @@ of map 1 within ``max_correspondence_distance``: a plane-to-plane distance. Each
 that of the occupied voxel centres within ``radius_voxels`` voxels of the point, looked up in
 its own map by Morton key (the 81 lattice offsets of a 2.5-voxel ball; a pruned occupied leaf
 counts as all its voxels), with its eigenvalues replaced by ``(1e-3, 1, 1)``: a disc along the
-local surface, the plane regularisation of fast_gicp / small_gicp. Gauss-Newton steps update
+local surface, the plane regularisation of fast_gicp / small_gicp. Both clouds' covariances
+are computed once, before the iterations. Gauss-Newton steps update
 ``T`` on the left (``exp(xi) T``) until the step falls below ``STEP_ROTATION_RAD`` and
 ``STEP_TRANSLATION_VOXELS``, or the energy has not reached a new low for ``STALL_PATIENCE``
 steps (then the lowest-energy iterate is returned).
@@ -85,6 +86,22 @@ def lattice_covariances(m: OccupancyMap, points, occupied_log_odds, offsets):
     return jnp.where((n >= 3)[:, None, None], C, jnp.eye(3, dtype=jnp.float32))
 
 
+def _covariances_of_rows(m: OccupancyMap, points, count, occupied_log_odds, offsets, block: int = 4096):
+    """``lattice_covariances`` of the first ``count`` (traced) rows of ``points (P, 3)``, in blocks
+    of ``block`` rows; blocks past ``count`` are skipped (identity)."""
+    P = points.shape[0]
+    if P <= block or P % block:
+        return lattice_covariances(m, points, occupied_log_odds, offsets)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), (block, 3, 3))
+
+    def one(args):
+        i, rows = args
+        return jax.lax.cond(i * block < count, lambda: lattice_covariances(m, rows, occupied_log_odds, offsets),
+                            lambda: eye)
+
+    return jax.lax.map(one, (jnp.arange(P // block), points.reshape(-1, block, 3))).reshape(P, 3, 3)
+
+
 def smallest_eigenvector(A):
     """Unit eigenvector ``(P, 3)`` of the smallest eigenvalue of symmetric ``A (P, 3, 3)``, in
     closed form (Smith 1961's eigenvalue, then the largest cross product of two rows of
@@ -129,14 +146,17 @@ class _State(NamedTuple):
 
 
 @partial(jax.jit, static_argnames=("offsets", "max_iterations"))
-def _solve(m1, m2, grid, samples, count, T0, centre, thresholds, mcd, *, offsets, max_iterations):
+def _solve(m1, m2, grid, targets, target_count, samples, count, T0, centre, thresholds, mcd, *, offsets,
+           max_iterations):
     """Gauss-Newton on the GICP energy in map 1's frame centred at ``centre``: ``(T (4, 4)
-    float32, steps, settled, inliers, rmse [m])``. Correspondence sets can cycle; then the
-    iterate of the lowest energy is returned once it has not been beaten for
-    ``STALL_PATIENCE`` steps."""
+    float32, steps, settled, inliers, rmse [m])``. ``targets``: the points ``grid`` holds
+    (centred; ``target_count`` of them valid); their covariances are computed once, as the
+    samples'. Correspondence sets can cycle; then the iterate of the lowest energy is returned
+    once it has not been beaten for ``STALL_PATIENCE`` steps."""
     off = np.asarray(offsets, np.int32)
     valid = jnp.arange(samples.shape[0]) < count
-    C2 = lattice_covariances(m2, samples, thresholds[1], off)
+    C1_all = _covariances_of_rows(m1, targets + centre, target_count, thresholds[0], off)
+    C2 = _covariances_of_rows(m2, samples, count, thresholds[1], off)
     mcd2 = mcd * mcd
     res = jnp.float32(m1.resolution)
 
@@ -144,11 +164,11 @@ def _solve(m1, m2, grid, samples, count, T0, centre, thresholds, mcd, *, offsets
         y = samples @ T[:3, :3].T + T[:3, 3]
         d2, idx, p = neighbors.nearest_with_points(grid, y, count=count)
         inlier = valid & (idx >= 0) & (d2 <= mcd2)
-        return y, d2, p, inlier
+        return y, d2, p, inlier, idx
 
     def body(s: _State) -> _State:
-        y, _, p, inlier = matches(s.T)
-        C1 = lattice_covariances(m1, jnp.where(inlier[:, None], p + centre, 0.0), thresholds[0], off)
+        y, _, p, inlier, idx = matches(s.T)
+        C1 = C1_all[jnp.maximum(idx, 0)]
         R = s.T[:3, :3]
         W = jnp.linalg.inv(C1 + jnp.einsum("ij,pjk,lk->pil", R, C2, R))
         W = jnp.where(inlier[:, None, None], W, 0.0)
@@ -173,7 +193,7 @@ def _solve(m1, m2, grid, samples, count, T0, centre, thresholds, mcd, *, offsets
                                               jnp.float32(jnp.inf), jnp.int32(0)))
     settled = _settled(s.step, res)
     T = jnp.where(settled, s.T, s.best_T)
-    _, d2, _, inlier = matches(T)
+    _, d2, _, inlier, _ = matches(T)
     n = jnp.sum(inlier)
     rmse = jnp.sqrt(jnp.sum(jnp.where(inlier, d2, 0.0)) / jnp.maximum(n, 1).astype(jnp.float32))
     return T, s.k, settled | (s.stall >= STALL_PATIENCE), n, rmse
@@ -232,7 +252,9 @@ def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, 
     T0[:3, 3] -= centre
     thresholds = jnp.asarray([m.params.occupancy_threshold_host for m in (m1, m2)])
     offsets = tuple(map(tuple, ball_offsets(radius_voxels).tolist()))
-    T, k, settled, n_in, rmse = _solve(m1, m2, grid, jnp.asarray(samples), jnp.int32(n2), jnp.asarray(T0, jnp.float32),
+    T, k, settled, n_in, rmse = _solve(m1, m2, grid, jnp.asarray(target), jnp.int32(n1), jnp.asarray(samples),
+                                       jnp.int32(n2),
+                                       jnp.asarray(T0, jnp.float32),
                                        jnp.asarray(centre, jnp.float32), thresholds,
                                        jnp.float32(max_correspondence_distance), offsets=offsets,
                                        max_iterations=int(max_iterations))
