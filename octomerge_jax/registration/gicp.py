@@ -9,8 +9,8 @@ of map 1 within ``max_correspondence_distance``: a plane-to-plane distance. Each
 that of the occupied voxel centres within ``radius_voxels`` voxels of the point, looked up in
 its own map by Morton key (the 81 lattice offsets of a 2.5-voxel ball; a pruned occupied leaf
 counts as all its voxels), with its eigenvalues replaced by ``(1e-3, 1, 1)``: a disc along the
-local surface, the plane regularisation of fast_gicp / small_gicp. Both clouds' covariances
-are computed once, before the iterations. Gauss-Newton steps update
+local surface, the plane regularisation of fast_gicp / small_gicp. Each covariance is computed
+once: the samples' before the iterations, a target's when a sample first matches it. Gauss-Newton steps update
 ``T`` on the left (``exp(xi) T``) until the step falls below ``STEP_ROTATION_RAD`` and
 ``STEP_TRANSLATION_VOXELS``, or the energy has not reached a new low for ``STALL_PATIENCE``
 steps (then the lowest-energy iterate is returned).
@@ -143,19 +143,20 @@ class _State(NamedTuple):
     best_T: jax.Array  # (4, 4) float32, the iterate of the lowest energy so far
     best_energy: jax.Array  # () float32, its mean GICP energy over the inliers
     stall: jax.Array  # () int32, steps since the energy last reached a new low
+    C1: jax.Array  # (n_targets, 3, 3) float32, map 1's covariances of the targets matched so far
+    have: jax.Array  # (n_targets,) bool, the targets whose covariance ``C1`` holds
 
 
 @partial(jax.jit, static_argnames=("offsets", "max_iterations"))
-def _solve(m1, m2, grid, targets, target_count, samples, count, T0, centre, thresholds, mcd, *, offsets,
-           max_iterations):
+def _solve(m1, m2, grid, targets, samples, count, T0, centre, thresholds, mcd, *, offsets, max_iterations):
     """Gauss-Newton on the GICP energy in map 1's frame centred at ``centre``: ``(T (4, 4)
     float32, steps, settled, inliers, rmse [m])``. ``targets``: the points ``grid`` holds
-    (centred; ``target_count`` of them valid); their covariances are computed once, as the
-    samples'. Correspondence sets can cycle; then the iterate of the lowest energy is returned
-    once it has not been beaten for ``STALL_PATIENCE`` steps."""
+    (centred); a target's covariance is computed the first time a sample matches it and kept,
+    the samples' once before the loop. Correspondence sets can cycle; then the iterate of the
+    lowest energy is returned once it has not been beaten for ``STALL_PATIENCE`` steps."""
     off = np.asarray(offsets, np.int32)
-    valid = jnp.arange(samples.shape[0]) < count
-    C1_all = _covariances_of_rows(m1, targets + centre, target_count, thresholds[0], off)
+    S, n_targets = samples.shape[0], targets.shape[0]
+    valid = jnp.arange(S) < count
     C2 = _covariances_of_rows(m2, samples, count, thresholds[1], off)
     mcd2 = mcd * mcd
     res = jnp.float32(m1.resolution)
@@ -166,8 +167,18 @@ def _solve(m1, m2, grid, targets, target_count, samples, count, T0, centre, thre
         inlier = valid & (idx >= 0) & (d2 <= mcd2)
         return y, d2, p, inlier, idx
 
+    def target_covariances(s: _State, inlier, idx):
+        """``s.C1, s.have`` with the covariances of the matched targets not computed yet."""
+        need = inlier & ~s.have[jnp.maximum(idx, 0)]
+        rows = jnp.nonzero(need, size=S, fill_value=S)[0]
+        new = idx.at[rows].get(mode="fill", fill_value=n_targets)  # n_targets: padding, dropped
+        C = _covariances_of_rows(m1, targets.at[new].get(mode="fill", fill_value=0.0) + centre,
+                                 jnp.sum(need), thresholds[0], off)
+        return s.C1.at[new].set(C, mode="drop"), s.have.at[new].set(True, mode="drop")
+
     def body(s: _State) -> _State:
         y, _, p, inlier, idx = matches(s.T)
+        C1_all, have = target_covariances(s, inlier, idx)
         C1 = C1_all[jnp.maximum(idx, 0)]
         R = s.T[:3, :3]
         W = jnp.linalg.inv(C1 + jnp.einsum("ij,pjk,lk->pil", R, C2, R))
@@ -183,14 +194,15 @@ def _solve(m1, m2, grid, targets, target_count, samples, count, T0, centre, thre
         step = jnp.stack([jnp.linalg.norm(dx[:3]), jnp.linalg.norm(dx[3:])])
         return _State(dT @ s.T, s.k + 1, jnp.where(jnp.all(jnp.isfinite(dx)), step, jnp.inf),
                       jnp.where(better, s.T, s.best_T), jnp.where(better, energy, s.best_energy),
-                      jnp.where(better, 0, s.stall + 1))
+                      jnp.where(better, 0, s.stall + 1), C1_all, have)
 
     def cond(s: _State):
         return ((s.k < max_iterations) & ~_settled(s.step, res) & jnp.all(jnp.isfinite(s.step))
                 & (s.stall < STALL_PATIENCE))
 
-    s = jax.lax.while_loop(cond, body, _State(T0, jnp.int32(0), jnp.full((2,), 1e30, jnp.float32), T0,
-                                              jnp.float32(jnp.inf), jnp.int32(0)))
+    start = _State(T0, jnp.int32(0), jnp.full((2,), 1e30, jnp.float32), T0, jnp.float32(jnp.inf), jnp.int32(0),
+                   jnp.zeros((n_targets, 3, 3), jnp.float32), jnp.zeros((n_targets,), bool))
+    s = jax.lax.while_loop(cond, body, start)
     settled = _settled(s.step, res)
     T = jnp.where(settled, s.T, s.best_T)
     _, d2, _, inlier, _ = matches(T)
@@ -252,8 +264,7 @@ def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, 
     T0[:3, 3] -= centre
     thresholds = jnp.asarray([m.params.occupancy_threshold_host for m in (m1, m2)])
     offsets = tuple(map(tuple, ball_offsets(radius_voxels).tolist()))
-    T, k, settled, n_in, rmse = _solve(m1, m2, grid, jnp.asarray(target), jnp.int32(n1), jnp.asarray(samples),
-                                       jnp.int32(n2),
+    T, k, settled, n_in, rmse = _solve(m1, m2, grid, jnp.asarray(target), jnp.asarray(samples), jnp.int32(n2),
                                        jnp.asarray(T0, jnp.float32),
                                        jnp.asarray(centre, jnp.float32), thresholds,
                                        jnp.float32(max_correspondence_distance), offsets=offsets,
