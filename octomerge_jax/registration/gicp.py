@@ -22,7 +22,6 @@ averages the quantisation out, which point-to-point ICP and the dense loss canno
 
 from __future__ import annotations
 
-from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -31,6 +30,7 @@ import numpy as np
 
 from .. import morton, se3, tree
 from .._ops import bucket_capacity
+from ..kernel_store import stored_jit
 from ..map import OccupancyMap
 from . import neighbors
 from ._icp import pad_points_host
@@ -147,7 +147,7 @@ class _State(NamedTuple):
     have: jax.Array  # (n_targets,) bool, the targets whose covariance ``C1`` holds
 
 
-@partial(jax.jit, static_argnames=("offsets", "max_iterations"))
+@stored_jit(static_argnames=("offsets", "max_iterations"))
 def _solve(m1, m2, grid, targets, samples, count, T0, centre, thresholds, mcd, *, offsets, max_iterations):
     """Gauss-Newton on the GICP energy in map 1's frame centred at ``centre``: ``(T (4, 4)
     float32, steps, settled, inliers, rmse [m])``. ``targets``: the points ``grid`` holds
