@@ -2,6 +2,7 @@
 ``XLA_FLAGS`` kept), and with the merge's later kernels compiled in a second thread while the
 registration compiles (``cli.compile_ahead``)."""
 
+import contextlib
 import logging
 import os
 import subprocess
@@ -113,13 +114,35 @@ def test_the_rest_of_the_merge_runs_ahead_when_the_registration_compiles(store, 
     assert len(calls) == 1
 
 
+def test_without_a_guess_the_work_ahead_runs_from_the_searchs_first_candidate(store, calls, monkeypatch):
+    heard = []
+
+    @contextlib.contextmanager
+    def candidate_listener(callback):  # register_global's hook, called here by hand
+        heard.append(callback)
+        yield
+
+    monkeypatch.setattr(ahead, "candidate_listener", candidate_listener)
+    REGISTRATION_KERNEL._loaded.clear()
+    m = SimpleNamespace(resolution=0.1, capacity=1024)
+    T = np.eye(4)
+    T[1, 3] = 3.0
+    with ahead.compile_ahead(m, m, None, MergeConfig()):
+        REGISTRATION_KERNEL(np.arange(7.0))  # compiling, but no pose to work from yet
+        assert calls == []
+        heard[0](T)
+        heard[0](np.eye(4))  # the first candidate counts
+    assert len(calls) == 1 and calls[0][0] == "octomerge-compile-ahead"
+    np.testing.assert_array_equal(calls[0][1], T)
+
+
 def test_work_ahead_that_fails_is_dropped(store, monkeypatch):
     def fail(*args):
         raise MemoryError("over the budget")
 
     monkeypatch.setattr(ahead, "transform_and_fuse", fail)
     m = SimpleNamespace(resolution=0.1, capacity=1024)
-    with ahead.compile_ahead(m, m, None, MergeConfig()):
+    with ahead.compile_ahead(m, m, np.eye(4), MergeConfig()):
         assert int(REGISTRATION_KERNEL(np.arange(3.0))[1]) == 2
 
 

@@ -14,7 +14,8 @@ from octomerge_jax import registration as reg
 from octomerge_jax import se3
 from octomerge_jax.cli import main
 from octomerge_jax.io import save
-from octomerge_jax.pipeline import (MergeConfig, Registration, Timings, dense_after_global, merge, merge_batch,
+from octomerge_jax.pipeline import (MergeConfig, Registration, Timings, candidate_listener, dense_after_global, merge,
+                                     merge_batch,
                                     register_global, transform_from_xyz_rpy)
 from octomerge_jax.pipeline.clouds import occupied_clouds
 from octomerge_jax.registration.features import coarse_cloud, neighbor_pairs, normals
@@ -165,7 +166,10 @@ def test_yaw_and_level_from_normals():
 def test_small_room_from_random_yaw(room, yaw):
     T_true = transform_from_xyz_rpy(0.6, -0.4, 0.0, 0.0, 0.0, yaw)
     m1, m2 = _room_pair(room, T_true)
-    r = register_global(m1, m2)
+    heard = []
+    with candidate_listener(heard.append):  # the best screened pose, before ICP (cli.compile_ahead)
+        r = register_global(m1, m2)
+    assert len(heard) == 1 and heard[0].shape == (4, 4)
     verdict = r.info["verdict"]
     assert verdict in ("ok", "ambiguous")
     if verdict == "ok":

@@ -10,13 +10,12 @@ import threading
 import jax
 import numpy as np
 
-from .. import se3
 from ..budget import current_budget, memory_budget
 from ..kernel_store import compile_listener
 from ..map import OccupancyMap
-from ..pipeline import MergeConfig, Timings, transform_and_fuse
+from ..pipeline import MergeConfig, Timings, candidate_listener, transform_and_fuse
 
-__all__ = ["compile_ahead", "BYTES_PER_ROW", "SHARE_OF_BUDGET", "UNGUESSED_YAW_RAD"]
+__all__ = ["compile_ahead", "BYTES_PER_ROW", "SHARE_OF_BUDGET"]
 
 SHARE_OF_BUDGET = 0.25
 """The share of the memory budget (``budget.current_budget``) the work ahead may take; a pair
@@ -26,22 +25,15 @@ BYTES_PER_ROW = 512
 """The work ahead's peak memory per leaf row of the two maps' capacities [bytes], compiling
 included (measured: docs/design.md, "Compiling the merge's later kernels during the registration")."""
 
-UNGUESSED_YAW_RAD = 0.5
-"""The turn (about the z axis through the origin) the work ahead moves map 2 by when the merge
-has no guess: a map turned off the grid's axes by any angle touches about twice the destination
-bricks of the unturned map, so a found transform's buckets are a turned map's, not the
-identity's (docs/design.md)."""
-
-
 @contextlib.contextmanager
 def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig):
     """Within the block (one ``merge`` of ``m1`` and ``m2`` with ``config``), the first time the
     registration compiles a stored kernel afresh (``kernel_store.compile_listener``: only with
     the kernel store open and the program in neither the process nor the store), a second
     thread runs the rest of the merge (``transform_and_fuse``) from ``T_1_2`` ((4, 4); the
-    guess; ``None``: a turn by ``UNGUESSED_YAW_RAD``) and drops its result. The GICP polish is
-    not worked ahead (``docs/design.md``, "Compiling the merge's later kernels during the registration"). Its programs'
-    shapes are bucketed, so they are the ones the real merge needs unless the final transform
+    guess; ``None``: once ``register_global`` has published its best screened pose,
+    ``pipeline.candidate_listener``) and drops its result. The GICP polish is not worked ahead
+    (``docs/design.md``, "Compiling the merge's later kernels during the registration"). Its programs' shapes are bucketed, so they are the ones the real merge needs unless the final transform
     changes a bucket; the real merge then loads them, or waits for the thread compiling them,
     instead of compiling them after the registration. A warm merge starts no thread. A pair
     whose work ahead would need more than ``SHARE_OF_BUDGET`` of the memory budget
@@ -51,24 +43,34 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     exit waits for the thread."""
     threads: list[threading.Thread] = []
     budget = int(current_budget() * SHARE_OF_BUDGET)
-    T = se3.from_xyz_rpy(0.0, 0.0, 0.0, 0.0, 0.0, UNGUESSED_YAW_RAD, xp=np) if T_1_2 is None \
-        else np.asarray(T_1_2, np.float64)
+    state = {"compiling": False, "T": None if T_1_2 is None else np.asarray(T_1_2, np.float64)}
 
-    def work():
+    def work(T):
         with memory_budget(budget), contextlib.suppress(Exception):
             jax.block_until_ready(transform_and_fuse(m1, m2, T, config, Timings())[1:])
 
-    def on_compile(kernel: str):
-        if not threads and ".registration." in kernel:
-            threads.append(threading.Thread(target=work, name="octomerge-compile-ahead", daemon=True))
+    def start():
+        if not threads and state["compiling"] and state["T"] is not None:
+            threads.append(threading.Thread(target=work, args=(state["T"],), name="octomerge-compile-ahead",
+                                            daemon=True))
             threads[0].start()
+
+    def on_compile(kernel: str):
+        if ".registration." in kernel:
+            state["compiling"] = True
+            start()
+
+    def on_candidate(T):
+        if state["T"] is None:
+            state["T"] = T
+            start()
 
     if not math.isclose(m1.resolution, m2.resolution, rel_tol=1e-9) or \
             (m1.capacity + m2.capacity) * BYTES_PER_ROW > budget:
         yield
         return
     try:
-        with compile_listener(on_compile):
+        with compile_listener(on_compile), candidate_listener(on_candidate):
             yield
     finally:
         for t in threads:

@@ -7,7 +7,7 @@ from .config import (COARSE_MATCHING_CHOICES, DEMO_SCENES, HYPOTHESES_CHOICES, O
                      OVERLAP_CHOICES, POLISH_CHOICES, REFINE_CHOICES, BatchConfig, DemoConfig, FuseConfig, MergeConfig,
                      RegistrationConfig, TransformConfig, config_from_dict, config_to_dict, validate)
 from .config_file import dumps_toml, load_config, save_config
-from .globalreg import judge_local, register_global
+from .globalreg import candidate_listener, judge_local, register_global
 from .many import merge_many
 from .many_report import EdgeReport, ManyReport, MapReport
 from .merging import check_resolutions, merge, resample_to_resolution, transform_and_fuse, transform_from_xyz_rpy
@@ -18,7 +18,7 @@ from .timings import Timings, stage_listener
 from .trace import icp_trace
 
 __all__ = [
-    "BatchConfig", "BatchResult", "COARSE_MATCHING_CHOICES", "DEMO_SCENES", "DemoConfig", "EdgeReport", "FuseConfig",
+    "BatchConfig", "BatchResult", "COARSE_MATCHING_CHOICES", "candidate_listener", "DEMO_SCENES", "DemoConfig", "EdgeReport", "FuseConfig",
     "ManyReport", "MapReport",
     "HYPOTHESES_CHOICES", "MergeConfig", "MergeError", "MergeReport", "ON_NOT_CONVERGED_CHOICES",
     "OVERLAP_CHOICES", "POLISH_CHOICES", "REFINE_CHOICES", "Registration", "RegistrationConfig", "Timings", "TransformConfig",

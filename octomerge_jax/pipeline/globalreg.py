@@ -33,6 +33,8 @@ grid (``benchmarks/bench_global.py``); see
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 from typing import NamedTuple
 
@@ -56,7 +58,8 @@ from .timings import Timings
 
 __all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MAX_CONFLICT_RATIO", "MAX_ICP_DROP", "MAX_LOCAL_CONFLICT_RATIO",
            "MIN_CONFIDENCE", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS", "MIN_PINNING_CELLS", "MIN_SHARED", "MIN_SHARED_OK",
-           "explained_fraction", "icp_left_start", "judge_local", "local_cell_sets", "register_global"]
+           "candidate_listener", "explained_fraction", "icp_left_start", "judge_local", "local_cell_sets",
+           "register_global"]
 
 #: a distinct second pose whose net agreement is within this share of the best's: "ambiguous"
 AMBIGUOUS_GAP = 0.1
@@ -91,6 +94,19 @@ _NORMAL_RADIUS = 2.0  # [coarse cells]
 _YAW_PEAKS, _TRANSLATION_PEAKS = 4, 6  # yaw peaks (each also turned by pi) x translation peaks per yaw
 _MAX_CORRELATION_CELLS = 1 << 21  # the correlation grid's cells (padded): its cell grows to fit
 _NUM_REFINED = 3  # distinct poses of the highest net agreement refined by ICP (all: see docs/design.md)
+_candidate_callback: contextvars.ContextVar = contextvars.ContextVar("octomerge_candidate_listener", default=None)
+
+
+@contextlib.contextmanager
+def candidate_listener(callback):
+    """While inside, ``register_global`` of this thread / task calls ``callback(T_1_2)`` with its
+    best screened pose ``(4, 4)`` float64 before refining it (the command line compiles the
+    transform and fusion kernels for it meanwhile). Nothing is watched outside."""
+    token = _candidate_callback.set(callback)
+    try:
+        yield
+    finally:
+        _candidate_callback.reset(token)
 
 
 def explained_fraction(points_1, points_2, T_1_2, distance: float, config: MergeConfig) -> tuple[int, float]:
@@ -215,6 +231,9 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         i_nudged = int(np.argmax(nudged))
         if all(pose_distance(T_all[i_nudged], T_all[i], extent) >= 2.0 * v for i in picked):
             picked.append(i_nudged)
+    callback = _candidate_callback.get()
+    if callback is not None:
+        callback(np.array(T_all[picked[0]], np.float64))
     refined = [_refine(p1, p2, T_all[i], int(i), config, resolution, timings) for i in picked]
     with timings.stage("verify"):
         agree_conflict = [consistency_score(s1, s2, r.T_1_2) for r in refined]
