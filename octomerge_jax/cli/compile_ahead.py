@@ -33,9 +33,11 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     thread runs the rest of the merge (``transform_and_fuse``) from ``T_1_2`` ((4, 4); the
     guess; ``None``: once ``register_global`` has published its best screened pose,
     ``pipeline.candidate_listener``) and drops its result. The GICP polish is not worked ahead
-    (``docs/design.md``, "Compiling the merge's later kernels during the registration"). Its programs' shapes are bucketed, so they are the ones the real merge needs unless the final transform
-    changes a bucket; the real merge then loads them, or waits for the thread compiling them,
-    instead of compiling them after the registration. A warm merge starts no thread. A pair
+    (``docs/design.md``, "Compiling the merge's later kernels during the registration").
+    Its programs' shapes are bucketed, so they are the ones the real merge needs unless the
+    final transform changes a bucket; the real merge then loads them, or waits for the thread
+    compiling them, instead of compiling them after the registration. A warm merge starts no
+    thread. A pair
     whose work ahead would need more than ``SHARE_OF_BUDGET`` of the memory budget
     (``BYTES_PER_ROW`` per row of both maps' capacities), and maps of two resolutions
     (resampled by ``merge`` first), are not worked ahead; work ahead that fails, or allocates

@@ -18,7 +18,7 @@ from .timings import Timings, stage_listener
 from .trace import icp_trace
 
 __all__ = [
-    "BatchConfig", "BatchResult", "COARSE_MATCHING_CHOICES", "candidate_listener", "DEMO_SCENES", "DemoConfig", "EdgeReport", "FuseConfig",
+    "BatchConfig", "BatchResult", "COARSE_MATCHING_CHOICES", "DEMO_SCENES", "DemoConfig", "EdgeReport", "FuseConfig",
     "ManyReport", "MapReport",
     "HYPOTHESES_CHOICES", "MergeConfig", "MergeError", "MergeReport", "ON_NOT_CONVERGED_CHOICES",
     "OVERLAP_CHOICES", "POLISH_CHOICES", "REFINE_CHOICES", "Registration", "RegistrationConfig", "Timings", "TransformConfig",
@@ -27,5 +27,5 @@ __all__ = [
     "point_stats", "polish",
     "rank_by_map_agreement", "register", "register_global", "resample_to_resolution", "save_config",
     "transform_and_fuse", "transform_from_xyz_rpy", "validate",
-    "stage_listener",  # --- bags (progress)
+    "candidate_listener", "stage_listener",  # --- the command line (work ahead, progress)
 ]

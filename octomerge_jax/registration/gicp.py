@@ -10,10 +10,10 @@ that of the occupied voxel centres within ``radius_voxels`` voxels of the point,
 its own map by Morton key (the 81 lattice offsets of a 2.5-voxel ball; a pruned occupied leaf
 counts as all its voxels), with its eigenvalues replaced by ``(1e-3, 1, 1)``: a disc along the
 local surface, the plane regularisation of fast_gicp / small_gicp. Each covariance is computed
-once: the samples' before the iterations, a target's when a sample first matches it. Gauss-Newton steps update
-``T`` on the left (``exp(xi) T``) until the step falls below ``STEP_ROTATION_RAD`` and
-``STEP_TRANSLATION_VOXELS``, or the energy has not reached a new low for ``STALL_PATIENCE``
-steps (then the lowest-energy iterate is returned).
+once: the samples' before the iterations, a target's when a sample first matches it.
+Gauss-Newton steps update ``T`` on the left (``exp(xi) T``) until the step falls below
+``STEP_ROTATION_RAD`` and ``STEP_TRANSLATION_VOXELS``, or the energy has not reached a new low
+for ``STALL_PATIENCE`` steps (then the lowest-energy iterate is returned).
 
 Voxel centres quantise a surface to the lattice; a plane fitted to a surface's voxels
 averages the quantisation out, which point-to-point ICP and the dense loss cannot
