@@ -37,9 +37,8 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     Its programs' shapes are bucketed, so they are the ones the real merge needs unless the
     final transform changes a bucket; the real merge then loads them, or waits for the thread
     compiling them, instead of compiling them after the registration. A warm merge starts no
-    thread. A pair
-    whose work ahead would need more than ``SHARE_OF_BUDGET`` of the memory budget
-    (``BYTES_PER_ROW`` per row of both maps' capacities), and maps of two resolutions
+    thread. A pair whose work ahead would need more than ``SHARE_OF_BUDGET`` of the memory
+    budget (``BYTES_PER_ROW`` per row of both maps' capacities), and maps of two resolutions
     (resampled by ``merge`` first), are not worked ahead; work ahead that fails, or allocates
     over that share, is dropped silently (the real merge reports its own errors). The block's
     exit waits for the thread."""
