@@ -253,13 +253,33 @@ class StoredJit:
         directory = _STATE["dir"]
         if directory is None or jax.device_count() != 1:
             return self.jitted(*args, **kwargs)
+        dynamic, static = self._split(args, kwargs)
+        if is_traced(*jax.tree_util.tree_leaves(dynamic)):
+            return self.jitted(*args, **kwargs)
+        return self._program(directory, dynamic, static)(*dynamic)
+
+    def precompile(self, *args, **kwargs) -> bool:
+        """Make the program a call with these arguments would run ready (loaded from the open
+        store, or compiled and stored) without running it; arrays may be given as
+        ``jax.ShapeDtypeStruct``. Returns ``False`` (nothing done) with no store open or more
+        than one device."""
+        directory = _STATE["dir"]
+        if directory is None or jax.device_count() != 1:
+            return False
+        self._program(directory, *self._split(args, kwargs))
+        return True
+
+    def _split(self, args, kwargs) -> tuple[tuple, dict]:
+        """A call's ``(dynamic arguments, {static name: value})``."""
         bound = self._signature.bind(*args, **kwargs)
         bound.apply_defaults()
         dynamic = tuple(v for k, v in bound.arguments.items() if k not in self._static)
-        static = {k: v for k, v in bound.arguments.items() if k in self._static}
+        return dynamic, {k: v for k, v in bound.arguments.items() if k in self._static}
+
+    def _program(self, directory: Path, dynamic: tuple, static: dict):
+        """The executable for these arguments: this process's, the store's, or compiled and
+        stored."""
         leaves, tree = jax.tree_util.tree_flatten(dynamic)
-        if is_traced(*leaves):
-            return self.jitted(*args, **kwargs)
         key = hashlib.sha256(repr((self._name, sorted(static.items()), str(tree),
                                    [str(jax.typeof(x)) for x in leaves], _environment())).encode()).hexdigest()[:32]
         compiled = self._loaded.get(key)
@@ -275,7 +295,7 @@ class StoredJit:
                     compiled = _compile_fresh(self._for_store.lower(*dynamic, **static))
                     self._save(directory, key, compiled)
                 self._loaded[key] = compiled
-        return compiled(*dynamic)
+        return compiled
 
     def _path(self, directory: Path, key: str) -> Path:
         return directory / f"{self._name.rsplit('.', 1)[-1]}-{key}.pkl"

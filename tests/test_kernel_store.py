@@ -62,6 +62,24 @@ def test_a_call_stores_one_program_per_shape_and_static_value(store):
     assert len(list(store.glob("solve_sorted-*.pkl"))) == 3
 
 
+def test_precompile_stores_the_program_a_call_then_runs(store):
+    # scale 11: a program no other test compiles (XLA:CPU's second compile of a sort in one process cannot be
+    # serialized, so a later test's store would stay empty)
+    a, b = A[:2, :2], B[:2]
+    expected = jax.jit(solve_sorted, static_argnames="scale")(a, b, scale=11)
+    heard = []
+    with kernel_store.compile_listener(heard.append):
+        shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in (a, b)]
+        assert STORED.precompile(*shapes, scale=11)  # shapes suffice: nothing runs
+        assert len(heard) == 1 and len(list(store.glob("solve_sorted-*.pkl"))) == 1
+        np.testing.assert_array_equal(STORED(a, b, scale=11), expected)
+    assert len(heard) == 1  # the call compiled nothing
+
+
+def test_precompile_without_a_store_does_nothing(no_store):
+    assert not STORED.precompile(A[:2, :2], B[:2], scale=11)
+
+
 def test_under_a_trace_it_is_the_plain_jit(store):
     a, b = A[:5, :5], B[:5]
     out = jax.vmap(lambda b: STORED(a, b, scale=2))(np.stack([b, b + 1]))

@@ -14,6 +14,8 @@ from ..budget import current_budget, memory_budget
 from ..kernel_store import compile_listener
 from ..map import OccupancyMap
 from ..pipeline import MergeConfig, Timings, candidate_listener, transform_and_fuse
+from ..pipeline.clouds import occupied_clouds
+from ..pipeline.refine import precompile_polish
 
 __all__ = ["compile_ahead", "BYTES_PER_ROW", "SHARE_OF_BUDGET"]
 
@@ -32,8 +34,9 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     the kernel store open and the program in neither the process nor the store), a second
     thread runs the rest of the merge (``transform_and_fuse``) from ``T_1_2`` ((4, 4); the
     guess; ``None``: once ``register_global`` has published its best screened pose,
-    ``pipeline.candidate_listener``) and drops its result. The GICP polish is not worked ahead
-    (``docs/design.md``, "Compiling the merge's later kernels during the registration").
+    ``pipeline.candidate_listener``) and drops its result; then it compiles (without running)
+    the GICP polish's program for that pose (``pipeline.refine.precompile_polish``; run there, it
+    hung: ``docs/design.md``, "Compiling the merge's later kernels during the registration").
     Its programs' shapes are bucketed, so they are the ones the real merge needs unless the
     final transform changes a bucket; the real merge then loads them, or waits for the thread
     compiling them, instead of compiling them after the registration. A warm merge starts no
@@ -49,6 +52,8 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     def work(T):
         with memory_budget(budget), contextlib.suppress(Exception):
             jax.block_until_ready(transform_and_fuse(m1, m2, T, config, Timings())[1:])
+            clouds = occupied_clouds(m1, m2, Timings())
+            precompile_polish(m1, m2, clouds.points_1, clouds.points_2, T, config)
 
     def start():
         if not threads and state["compiling"] and state["T"] is not None:

@@ -42,7 +42,7 @@ from .report import MergeError, Registration
 from .timings import Timings
 
 __all__ = ["DenseStep", "Overlap", "accept_icp", "dense_after_global", "dense_after_icp", "overlap_for_icp", "polish",
-           "refine_dense", "register", "register_dense", "register_icp", "register_multi", "register_none"]
+           "precompile_polish", "refine_dense", "register", "register_dense", "register_icp", "register_multi", "register_none"]
 
 
 # the GICP polish (docs/design.md, "GICP polishes the default refinement"): correspondences within
@@ -300,6 +300,18 @@ def polish(m1, m2, points_1, points_2, T_start, info: dict, config: MergeConfig,
         warnings.append(f"GICP polish set aside (moved the pose {r.shift:.3g} m, {r.num_inliers} of {r.num_samples} "
                         "samples matched); the previous transform is kept")
     return np.asarray(r.T_1_2 if used else T_start, np.float64), {**info, "gicp": figures}
+
+
+def precompile_polish(m1, m2, points_1, points_2, T_start, config: MergeConfig) -> bool:
+    """Make ready the GICP program ``polish`` would run from ``T_start`` on these clouds
+    (``registration.precompile_gicp``) without running it: ``False`` when the config runs no
+    polish, the clouds are too small or no kernel store is open (``cli.compile_ahead``)."""
+    fewest = max(config.registration.min_inliers, reg.GICP_MIN_POINTS)
+    rc = config.registration
+    if rc.polish != "gicp" or rc.refine not in ("icp+dense", "global") or min(len(points_1), len(points_2)) < fewest:
+        return False
+    return reg.precompile_gicp(m1, m2, points_1, points_2, T_start,
+                               max_correspondence_distance=GICP_DISTANCE_VOXELS * m1.resolution)
 
 
 def _add_point_stats(dense_info: dict, clouds: Clouds, T_1_2, config: MergeConfig, resolution: float,

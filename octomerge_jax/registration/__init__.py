@@ -19,7 +19,7 @@ from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best
                     fused_log_odds, level_losses, pose_from_increment, prepare_alignment, problem_loss,
                     score_alignment, solve_alignment, solve_alignment_batch, stack_problems, transformed_occupancy)
 from .evaluate import RegistrationStats, evaluate_registration
-from .gicp import GICP_MIN_POINTS, GicpResult, gicp
+from .gicp import GICP_MIN_POINTS, GicpResult, gicp, precompile_gicp
 from .metrics import point_displacement, rotation_angle_error, rotation_error, translation_distance, translation_error
 from .neighbors import HashGrid, any_within, build_grid, build_grids, nearest
 from .overlap import Overlap, overlap
@@ -43,7 +43,7 @@ __all__ = [
     "score_alignment", "solve_alignment", "solve_alignment_batch", "stack_problems", "transformed_occupancy",
     "CorrelationResult", "correlation_search",
     # the GICP polish
-    "GICP_MIN_POINTS", "GicpResult", "gicp",
+    "GICP_MIN_POINTS", "GicpResult", "gicp", "precompile_gicp",
     # evaluation and errors
     "RegistrationStats", "evaluate_registration", "point_displacement", "rotation_angle_error", "rotation_error",
     "translation_distance", "translation_error",

@@ -35,7 +35,8 @@ from ..map import OccupancyMap
 from . import neighbors
 from ._icp import pad_points_host
 
-__all__ = ["GICP_MIN_POINTS", "GicpResult", "gicp", "lattice_covariances", "ball_offsets", "smallest_eigenvector"]
+__all__ = ["GICP_MIN_POINTS", "GicpResult", "gicp", "lattice_covariances", "ball_offsets", "precompile_gicp",
+           "smallest_eigenvector"]
 
 PLANE_EPSILON = 1e-3  # the regularised covariances' normal eigenvalue (in-plane ones are 1)
 # a step below both ends the iteration (docs/design.md, "GICP polishes the default refinement")
@@ -222,24 +223,23 @@ def _near_box(points, other, T_1_2, pad: float, inverse: bool) -> np.ndarray:
     return points[inside] if inside.sum() >= GICP_MIN_POINTS else points
 
 
-def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, max_correspondence_distance: float,
-         num_samples: int = 16384, radius_voxels: float = 2.5, max_iterations: int = 30, seed: int = 0) -> GicpResult:
-    """GICP of map 2 onto map 1 from ``T_1_2_init`` ``(4, 4)``.
+class _Prepared(NamedTuple):
+    """``gicp``'s host preparation (``_prepare``)."""
 
-    Args:
-      m1, m2: the maps (``m1.resolution == m2.resolution``); their covariances are looked up in them.
-      points_1: ``(n1, 3)`` [m] occupied voxel centres of map 1 (the targets: all of them; those
-        beyond the samples' bounding box under the start, by twice the correspondence
-        distance, are left out).
-      points_2: ``(n2, 3)`` [m] occupied voxel centres of map 2 (all of them); an even random
-        subset of at most ``num_samples`` (``seed``) of those inside map 1's grown bounding box
-        under the start are the sources.
-      max_correspondence_distance: [m] matches farther than this are left out (e.g. 2 voxels).
-      radius_voxels: the lattice neighbourhood of the covariances [voxels].
-    Returns a ``GicpResult``; ``converged`` is False when the steps neither settled nor cycled
-    within ``max_iterations``, or went non-finite (then ``T_1_2`` is the start).
-    Raises ``ValueError`` for a resolution mismatch or a cloud of fewer than ``GICP_MIN_POINTS``.
-    """
+    T_init: np.ndarray  # (4, 4) float64 start
+    centre: np.ndarray  # (3,) float64, map 1's frame origin of the solve
+    sources: np.ndarray  # (s, 3) float64, map 2's samples
+    targets: jax.Array  # (C1, 3) float32 map 1's points near the samples, centred, padded
+    n_targets: jax.Array  # () int32 valid rows of ``targets``
+    mcd: float  # [m] correspondence distance
+    table_size: int  # the target grid's hash table size
+    arguments: tuple  # ``_solve``'s dynamic arguments after ``grid``
+    offsets: tuple  # ``_solve``'s static lattice offsets
+
+
+def _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance, num_samples, radius_voxels,
+             seed) -> _Prepared:
+    """Validate ``gicp``'s inputs and cut, sample, centre and pad the clouds (``gicp``'s Args)."""
     if abs(m1.resolution - m2.resolution) > 1e-9 * m1.resolution:
         raise ValueError(f"gicp: resolutions differ ({m1.resolution} vs {m2.resolution})")
     p1 = np.asarray(points_1, np.float64).reshape(-1, 3)
@@ -258,17 +258,54 @@ def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, 
     centre = p1.mean(axis=0)
     target, n1 = pad_points_host(p1 - centre, None, "points_1")
     samples, n2 = pad_points_host(p2, bucket_capacity(min(num_samples, p2.shape[0])), "points_2")
-    grid = neighbors.build_grid(jnp.asarray(target), jnp.int32(n1), float(max_correspondence_distance),
-                                table_size=neighbors.grid_table_size(target.shape[0], 4.0))
     T0 = T_init.copy()
     T0[:3, 3] -= centre
     thresholds = jnp.asarray([m.params.occupancy_threshold_host for m in (m1, m2)])
-    offsets = tuple(map(tuple, ball_offsets(radius_voxels).tolist()))
-    T, k, settled, n_in, rmse = _solve(m1, m2, grid, jnp.asarray(target), jnp.asarray(samples), jnp.int32(n2),
-                                       jnp.asarray(T0, jnp.float32),
-                                       jnp.asarray(centre, jnp.float32), thresholds,
-                                       jnp.float32(max_correspondence_distance), offsets=offsets,
+    targets = jnp.asarray(target)
+    arguments = (targets, jnp.asarray(samples), jnp.int32(n2), jnp.asarray(T0, jnp.float32),
+                 jnp.asarray(centre, jnp.float32), thresholds, jnp.float32(max_correspondence_distance))
+    return _Prepared(T_init, centre, p2, targets, jnp.int32(n1), float(max_correspondence_distance),
+                     neighbors.grid_table_size(target.shape[0], 4.0), arguments,
+                     tuple(map(tuple, ball_offsets(radius_voxels).tolist())))
+
+
+def precompile_gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *,
+                    max_correspondence_distance: float, num_samples: int = 16384, radius_voxels: float = 2.5,
+                    max_iterations: int = 30, seed: int = 0) -> bool:
+    """Make ready (``kernel_store.StoredJit.precompile``) the program ``gicp`` with these
+    arguments runs, without running it; ``False`` when no kernel store is open. Raises as
+    ``gicp``."""
+    prep = _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance, num_samples, radius_voxels,
+                    seed)
+    grid = jax.eval_shape(lambda t, n: neighbors.build_grid(t, n, prep.mcd, table_size=prep.table_size),
+                          prep.targets, prep.n_targets)
+    return _solve.precompile(m1, m2, grid, *prep.arguments, offsets=prep.offsets, max_iterations=int(max_iterations))
+
+
+def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, max_correspondence_distance: float,
+         num_samples: int = 16384, radius_voxels: float = 2.5, max_iterations: int = 30, seed: int = 0) -> GicpResult:
+    """GICP of map 2 onto map 1 from ``T_1_2_init`` ``(4, 4)``.
+
+    Args:
+      m1, m2: the maps (``m1.resolution == m2.resolution``); their covariances are looked up in them.
+      points_1: ``(n1, 3)`` [m] occupied voxel centres of map 1 (the targets: all of them; those
+        beyond the samples' bounding box under the start, by twice the correspondence
+        distance, are left out).
+      points_2: ``(n2, 3)`` [m] occupied voxel centres of map 2 (all of them); an even random
+        subset of at most ``num_samples`` (``seed``) of those inside map 1's grown bounding box
+        under the start are the sources.
+      max_correspondence_distance: [m] matches farther than this are left out (e.g. 2 voxels).
+      radius_voxels: the lattice neighbourhood of the covariances [voxels].
+    Returns a ``GicpResult``; ``converged`` is False when the steps neither settled nor cycled
+    within ``max_iterations``, or went non-finite (then ``T_1_2`` is the start).
+    Raises ``ValueError`` for a resolution mismatch or a cloud of fewer than ``GICP_MIN_POINTS``.
+    """
+    prep = _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance, num_samples, radius_voxels,
+                    seed)
+    grid = neighbors.build_grid(prep.targets, prep.n_targets, prep.mcd, table_size=prep.table_size)
+    T, k, settled, n_in, rmse = _solve(m1, m2, grid, *prep.arguments, offsets=prep.offsets,
                                        max_iterations=int(max_iterations))
+    T_init, centre, p2 = prep.T_init, prep.centre, prep.sources
     T = np.asarray(T, np.float64)
     finite = bool(np.all(np.isfinite(T)))
     if finite:
