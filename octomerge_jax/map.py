@@ -10,6 +10,8 @@ sorts last, depth 16, log-odds 0).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import math
 from typing import NamedTuple
@@ -31,6 +33,7 @@ __all__ = [
     "empty",
     "from_leaves",
     "from_words",
+    "leaves_cache",
     "MIN_CAPACITY",
 ]
 
@@ -44,6 +47,25 @@ def probability(log_odds):
     """OctoMap ``probability(l) = 1 - 1 / (1 + exp(l))`` (works on NumPy and JAX arrays)."""
     xp = jnp if isinstance(log_odds, jax.Array) else np
     return 1.0 - 1.0 / (1.0 + xp.exp(log_odds))
+
+
+_LEAVES_CACHE: contextvars.ContextVar = contextvars.ContextVar("octomerge_leaves_cache", default=None)
+
+
+@contextlib.contextmanager
+def leaves_cache():
+    """While inside, ``OccupancyMap.leaves()`` of this thread / task computes each map's host
+    leaves once and returns the same read-only arrays again (a registration reads them a dozen
+    times: 0.04 s each for a 0.4M-leaf map). The maps and their leaves are held until the
+    block ends; nested blocks share the outer cache."""
+    if _LEAVES_CACHE.get() is not None:
+        yield
+        return
+    token = _LEAVES_CACHE.set({})
+    try:
+        yield
+    finally:
+        _LEAVES_CACHE.reset(token)
 
 
 @jax.tree_util.register_dataclass
@@ -147,7 +169,20 @@ class OccupancyMap:
         return self.valid_mask() & (self.log_odds < self.params.occupancy_threshold_log_odds)
 
     def leaves(self) -> Leaves:
-        """The valid leaves as NumPy arrays in Morton order."""
+        """The valid leaves as NumPy arrays in Morton order (inside ``leaves_cache``: computed
+        once per map, read-only)."""
+        cache = _LEAVES_CACHE.get()
+        if cache is None:
+            return self._host_leaves()
+        held = cache.get(id(self))
+        if held is None or held[0] is not self:
+            leaves = self._host_leaves()
+            for a in leaves:
+                a.flags.writeable = False
+            held = cache[id(self)] = (self, leaves)
+        return held[1]
+
+    def _host_leaves(self) -> Leaves:
         n = self.num_leaves
         # slice on the host: a device slice would compile once per leaf count
         codes = morton.join_codes(np.asarray(self.code)[:n])

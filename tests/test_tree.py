@@ -6,6 +6,7 @@ from hypothesis import strategies as st
 
 import octomerge_jax as om
 from octomerge_jax import morton, tree
+from octomerge_jax.map import leaves_cache
 
 RES = 0.1
 
@@ -207,3 +208,20 @@ def test_second_map_of_the_same_bucket_does_not_recompile():
 def test_update_points_rejects_out_of_range_points():
     with pytest.raises(ValueError, match="outside the OctoMap key range"):
         tree.update_points(om.empty(RES), [[0.0, 0.0, 1e6]], True)
+
+
+def test_leaves_cache_computes_each_maps_leaves_once_read_only():
+    pts = np.array([[0.05, 0.05, 0.05], [0.15, 0.05, 0.05], [1.05, 0.05, 0.05]], np.float32)
+    m = tree.from_voxels(pts, [0.5, 0.25, 3.0], RES)
+    other = tree.from_voxels(pts[:2], [0.5, 0.25], RES)
+    plain = m.leaves()
+    assert plain.centers.flags.writeable and m.leaves() is not plain
+    with leaves_cache():
+        first = m.leaves()
+        with leaves_cache():  # nested: the same cache
+            assert m.leaves() is first
+        assert not first.centers.flags.writeable and not first.log_odds.flags.writeable
+        for a, b in zip(first, plain):
+            np.testing.assert_array_equal(a, b)
+        assert other.leaves() is not first and other.leaves().codes.shape == (2,)
+    assert m.leaves() is not first and m.leaves().centers.flags.writeable

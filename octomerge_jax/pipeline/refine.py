@@ -30,7 +30,7 @@ import numpy as np
 
 from .. import registration as reg
 from .. import se3
-from ..map import OccupancyMap
+from ..map import OccupancyMap, leaves_cache
 from ..registration import Status
 from .candidates import multi_candidates
 from .clouds import (Clouds, align_info, dense_registration_info, icp_info, icp_kwargs, occupied_clouds, overlap_margin,
@@ -74,8 +74,14 @@ def register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig
 
     ``timings``: seconds per stage are added to it (default: a new, discarded one).
     Raises ``MergeError`` for empty clouds (``"empty"``), no overlap (``"no_overlap"``) or
-    failed ICP (``"icp_failed"``, ``"not_converged"`` per ``on_not_converged``)."""
+    failed ICP (``"icp_failed"``, ``"not_converged"`` per ``on_not_converged``). The maps' host
+    leaves are computed once for it (``map.leaves_cache``)."""
     timings = Timings() if timings is None else timings
+    with leaves_cache():
+        return _register(m1, m2, T_1_2_init, config, timings)
+
+
+def _register(m1: OccupancyMap, m2: OccupancyMap, T_1_2_init, config: MergeConfig, timings: Timings) -> Registration:
     clouds = occupied_clouds(m1, m2, timings)
     refine = config.registration.refine
     if refine == "none":
