@@ -46,10 +46,10 @@ from .. import se3
 from ..map import OccupancyMap, bucket_capacity
 from ..registration import Status
 from ..registration.features import cell_codes, coarse_cloud, coarse_voxel_size, neighbor_pairs, normals
-from ..registration.global_search import (CellSets, consistency_score, distinct_poses, free_space,
-                                          horizontal_pinning, level_rotation, map_cell_sets, net_agreement,
-                                          nudge_poses, pose_distance, rotation_z, translation_candidates,
-                                          yaw_candidates)
+from ..registration.global_search import (CellSets, consistency_score, correlation_grid, distinct_poses,
+                                          free_space, horizontal_pinning, level_rotation, map_cell_sets,
+                                          net_agreement, nudge_poses, pose_distance, rotation_z,
+                                          translation_candidates_of_grids, yaw_candidates)
 from .clouds import (align_info, dense_registration_info, icp_info, icp_kwargs, occupied_clouds, overlap_margin,
                      point_stats, select_overlap, stage_epsilon)
 from .config import MergeConfig
@@ -166,11 +166,11 @@ def _search_poses(m1, m2, p1, p2, resolution: float, timings: Timings):
     with timings.stage("correlation"):
         f1, w1 = free_space(m1, v_corr)
         f2, w2 = free_space(m2, v_corr)
-        f1 = f1 @ L1.T
+        g1 = correlation_grid(a, v_corr, f1 @ L1.T, w1)  # one for every yaw of map 2
         for yaw in yaws:
             R = rotation_z(yaw) @ L2
-            t, sc = translation_candidates(a, c2.points @ R.T, v_corr, f1, f2 @ R.T, num_peaks=_TRANSLATION_PEAKS,
-                                           free_volumes_1=w1, free_volumes_2=w2)
+            t, sc = translation_candidates_of_grids(g1, correlation_grid(c2.points @ R.T, v_corr, f2 @ R.T, w2), v_corr,
+                                                    num_peaks=_TRANSLATION_PEAKS)
             for ti, si in zip(t, sc):
                 T = np.eye(4)
                 T[:3, :3] = L1.T @ R

@@ -34,7 +34,8 @@ from .features import CoarseCloud, cell_codes, coarse_cloud, neighbor_pairs, nor
 
 __all__ = ["CellSets", "MIN_FREE_FRACTION", "cell_sets", "consistency_score", "distinct_poses", "free_space",
            "horizontal_pinning", "lattice_origin", "level_rotation", "map_cell_sets", "net_agreement", "nudge_poses",
-           "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates"]
+           "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates", "CorrelationGrid",
+           "correlation_grid", "translation_candidates_of_grids"]
 
 _YAW_BINS = 180  # over [0, pi): 1 degree
 
@@ -158,6 +159,32 @@ def free_space(m: OccupancyMap, voxel: float, max_points: int = 4_000_000) -> tu
     return np.concatenate(out), np.concatenate(volumes)
 
 
+class CorrelationGrid(NamedTuple):
+    """One map's side of ``translation_candidates`` (``correlation_grid``)."""
+
+    shift: np.ndarray  # (3,) float64 [m]: the grid's offset, lattice_origin of the occupied points
+    lo: np.ndarray  # (3,) int64 first cell key
+    size: np.ndarray  # (3,) int64 cells per axis
+    occupied: np.ndarray  # (size) float32, 1 in the occupied cells
+    free: np.ndarray | None  # (size) float32, 1 in the free cells (``_free_grid``), or None
+
+
+def correlation_grid(points, voxel: float, free=None, free_volumes=None) -> CorrelationGrid:
+    """The occupied (and, with ``free``, free) coarse cells of edge ``voxel`` [m] of one map's
+    ``points (n, 3)`` [m] as 0/1 grids, offset so that its dense planes lie mid-cell
+    (``lattice_origin``); ``free (f, 3)`` [m] and ``free_volumes (f,)`` [m^3] from
+    ``free_space``."""
+    shift = lattice_origin(points, voxel)
+    points = np.asarray(points, np.float64).reshape(-1, 3) - shift
+    c = coarse_cloud(points, voxel)
+    lo = c.keys.min(axis=0)
+    size = c.keys.max(axis=0) - lo + 1
+    occupied = _grid(points, voxel, lo, tuple(int(x) for x in size))
+    free_grid = None if free is None else _free_grid(np.asarray(free, np.float64).reshape(-1, 3) - shift, occupied,
+                                                     voxel, lo, free_volumes)
+    return CorrelationGrid(shift, lo, size, occupied, free_grid)
+
+
 def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2=None, num_peaks: int = 3,
                            min_separation_cells: int = 3, max_cells: int = 1 << 23, free_volumes_1=None,
                            free_volumes_2=None):
@@ -168,28 +195,28 @@ def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2
     ``free_volumes_* (f,)`` [m^3] from ``free_space``, free cells as ``cell_sets`` counts
     them), and those scores ``(k,)``: the ``k <= num_peaks`` highest peaks of the grids'
     cross-correlation (FFT), at least ``min_separation_cells`` apart (Chebyshev), best first.
-    Raises ``ValueError`` when the padded grid would exceed ``max_cells`` cells."""
-    # each grid offset so that its dense planes lie mid-cell (``lattice_origin``); t is shifted back below
-    shift_1, shift_2 = lattice_origin(points_1, voxel), lattice_origin(points_2, voxel)
-    points_1 = np.asarray(points_1, np.float64).reshape(-1, 3) - shift_1
-    points_2 = np.asarray(points_2, np.float64).reshape(-1, 3) - shift_2
-    free_1 = None if free_1 is None else np.asarray(free_1, np.float64).reshape(-1, 3) - shift_1
-    free_2 = None if free_2 is None else np.asarray(free_2, np.float64).reshape(-1, 3) - shift_2
-    c1, c2 = coarse_cloud(points_1, voxel), coarse_cloud(points_2, voxel)
-    lo1, lo2 = c1.keys.min(axis=0), c2.keys.min(axis=0)
-    s1 = c1.keys.max(axis=0) - lo1 + 1
-    s2 = c2.keys.max(axis=0) - lo2 + 1
+    Raises ``ValueError`` when the padded grid would exceed ``max_cells`` cells. The same as
+    ``translation_candidates_of_grids`` of both maps' ``correlation_grid``."""
+    return translation_candidates_of_grids(correlation_grid(points_1, voxel, free_1, free_volumes_1),
+                                           correlation_grid(points_2, voxel, free_2, free_volumes_2), voxel,
+                                           num_peaks, min_separation_cells, max_cells)
+
+
+def translation_candidates_of_grids(g1: CorrelationGrid, g2: CorrelationGrid, voxel: float, num_peaks: int = 3,
+                                    min_separation_cells: int = 3, max_cells: int = 1 << 23):
+    """``translation_candidates`` from both maps' ``correlation_grid`` (edge ``voxel`` [m]):
+    map 1's grid can serve every orientation of map 2."""
+    s1, s2 = g1.size, g2.size
     shape = tuple(int(x) for x in s1 + s2)
     if int(np.prod(shape)) > max_cells:
         raise ValueError(f"correlation grid of {shape} cells of {voxel:g} m exceeds {max_cells} cells")
-    o1, o2 = _grid(points_1, voxel, lo1, tuple(s1)), _grid(points_2, voxel, lo2, tuple(s2))
-    g1, g2 = np.fft.rfftn(o1, shape, axes=(0, 1, 2)), np.fft.rfftn(o2, shape, axes=(0, 1, 2))
+    f1, f2 = np.fft.rfftn(g1.occupied, shape, axes=(0, 1, 2)), np.fft.rfftn(g2.occupied, shape, axes=(0, 1, 2))
     # corr[d] = sum_x g1[x + d] g2[x]: map 2's cell x lands on map 1's cell x + d
-    spec = g1 * np.conj(g2)
-    if free_1 is not None:
-        spec -= np.fft.rfftn(_free_grid(free_1, o1, voxel, lo1, free_volumes_1), shape, axes=(0, 1, 2)) * np.conj(g2)
-    if free_2 is not None:
-        spec -= g1 * np.conj(np.fft.rfftn(_free_grid(free_2, o2, voxel, lo2, free_volumes_2), shape, axes=(0, 1, 2)))
+    spec = f1 * np.conj(f2)
+    if g1.free is not None:
+        spec -= np.fft.rfftn(g1.free, shape, axes=(0, 1, 2)) * np.conj(f2)
+    if g2.free is not None:
+        spec -= f1 * np.conj(np.fft.rfftn(g2.free, shape, axes=(0, 1, 2)))
     corr = np.fft.irfftn(spec, shape, axes=(0, 1, 2))
     flat = np.argsort(-corr, axis=None)[: 64 * num_peaks]
     shifts, scores = [], []
@@ -204,7 +231,7 @@ def translation_candidates(points_1, points_2, voxel: float, free_1=None, free_2
                 break
     d = np.asarray(shifts, np.int64).reshape(-1, 3)
     # cell lo2 + j of map 2 lands on cell lo1 + j + d of map 1
-    t = (d + lo1 - lo2).astype(np.float64) * voxel + shift_1 - shift_2
+    t = (d + g1.lo - g2.lo).astype(np.float64) * voxel + g1.shift - g2.shift
     return t, np.asarray(scores, np.float64)
 
 
