@@ -42,7 +42,8 @@ from .report import MergeError, Registration
 from .timings import Timings
 
 __all__ = ["DenseStep", "Overlap", "accept_icp", "dense_after_global", "dense_after_icp", "overlap_for_icp", "polish",
-           "precompile_polish", "refine_dense", "register", "register_dense", "register_icp", "register_multi", "register_none"]
+           "precompile_polish", "refine_dense", "register", "register_dense", "register_icp", "register_multi",
+           "register_none"]
 
 
 # the GICP polish (docs/design.md, "GICP polishes the default refinement"): correspondences within
