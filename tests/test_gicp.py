@@ -8,12 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from octomerge_jax import morton, se3
+from octomerge_jax import kernel_store, morton, se3
 from octomerge_jax import registration as reg
 from octomerge_jax.map import from_leaves
 from octomerge_jax.registration.gicp import PLANE_EPSILON, ball_offsets, lattice_covariances, smallest_eigenvector
+from octomerge_jax.registration.gicp import _solve as gicp_solve
 from octomerge_jax.pipeline import transform_from_xyz_rpy
 from octomerge_jax.sim import small_room_map, small_room_voxels
+
+from helpers import own_kernel_store
 
 RES = 0.1
 T_TRUE = transform_from_xyz_rpy(0.35, -0.25, 0.0, 0.0, 0.0, math.pi / 4)
@@ -117,3 +120,16 @@ def test_gicp_input_errors(room_pair):
     coarse = small_room_map((-1.0, 3.0), 0.2)
     with pytest.raises(ValueError, match="resolutions differ"):
         reg.gicp(coarse, m2, p1, p2, T_TRUE, max_correspondence_distance=0.2)
+
+
+def test_precompile_readies_the_program_gicp_runs(room_pair, tmp_path):
+    """``precompile_gicp`` (the command line's work ahead) compiles the very program ``gicp`` then runs:
+    the call compiles nothing more."""
+    m1, m2, p1, p2 = room_pair
+    start = transform_from_xyz_rpy(0.02, -0.03, 0.0, 0.0, 0.0, 0.01) @ T_TRUE
+    heard = []
+    with own_kernel_store(tmp_path / "kernels", [gicp_solve]), kernel_store.compile_listener(heard.append):
+        assert reg.precompile_gicp(m1, m2, p1, p2, start, max_correspondence_distance=2 * RES, max_iterations=17)
+        assert heard == ["octomerge_jax.registration.gicp._solve"]
+        r = reg.gicp(m1, m2, p1, p2, start, max_correspondence_distance=2 * RES, max_iterations=17)
+    assert len(heard) == 1 and r.converged
