@@ -294,8 +294,7 @@ def polish(m1, m2, points_1, points_2, T_start, info: dict, config: MergeConfig,
     ``T_start`` is kept with a warning. Returns
     ``(T_1_2 (4, 4) float64, info with the figures under "gicp")``
     (``docs/design.md``, "GICP polishes the default refinement")."""
-    fewest = max(config.registration.min_inliers, reg.GICP_MIN_POINTS)
-    if config.registration.polish != "gicp" or min(len(points_1), len(points_2)) < fewest:
+    if not _polishes(config, points_1, points_2):
         return np.asarray(T_start, np.float64), info
     res = m1.resolution
     with timings.stage("gicp"):
@@ -309,13 +308,18 @@ def polish(m1, m2, points_1, points_2, T_start, info: dict, config: MergeConfig,
     return np.asarray(r.T_1_2 if used else T_start, np.float64), {**info, "gicp": figures}
 
 
+def _polishes(config: MergeConfig, points_1, points_2) -> bool:
+    """``polish`` runs GICP on these clouds: the config asks for it and both clouds hold at least
+    ``min_inliers`` (and ``GICP_MIN_POINTS``) points."""
+    fewest = max(config.registration.min_inliers, reg.GICP_MIN_POINTS)
+    return config.registration.polish == "gicp" and min(len(points_1), len(points_2)) >= fewest
+
+
 def precompile_polish(m1, m2, points_1, points_2, T_start, config: MergeConfig) -> bool:
     """Make ready the GICP program ``polish`` would run from ``T_start`` on these clouds
     (``registration.precompile_gicp``) without running it: ``False`` when the config runs no
     polish, the clouds are too small or no kernel store is open (``cli.compile_ahead``)."""
-    fewest = max(config.registration.min_inliers, reg.GICP_MIN_POINTS)
-    rc = config.registration
-    if rc.polish != "gicp" or rc.refine not in ("icp+dense", "global") or min(len(points_1), len(points_2)) < fewest:
+    if config.registration.refine not in ("icp+dense", "global") or not _polishes(config, points_1, points_2):
         return False
     return reg.precompile_gicp(m1, m2, points_1, points_2, T_start,
                                max_correspondence_distance=GICP_DISTANCE_VOXELS * m1.resolution)
