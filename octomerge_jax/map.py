@@ -55,9 +55,9 @@ _LEAVES_CACHE: contextvars.ContextVar = contextvars.ContextVar("octomerge_leaves
 @contextlib.contextmanager
 def leaves_cache():
     """While inside, ``OccupancyMap.leaves()`` of this thread / task computes each map's host
-    leaves once and returns the same read-only arrays again (a registration reads them a dozen
-    times: 0.04 s each for a 0.4M-leaf map). The maps and their leaves are held until the
-    block ends; nested blocks share the outer cache."""
+    leaves once and returns the same read-only arrays again. The maps and their leaves are held
+    until the block ends; nested blocks share the outer cache (``docs/design.md``,
+    "Host leaves once per registration")."""
     if _LEAVES_CACHE.get() is not None:
         yield
         return
