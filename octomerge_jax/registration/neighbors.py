@@ -128,7 +128,10 @@ def _bucket(cells, mask, origin, dims, dense):
     return jnp.where(dense, jnp.where(inside, lin, mask + 1), _hash(cells, mask))
 
 
-def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, centroids: bool):
+def _build_level(points, count, cell_size, table_size, bits: int, cell_capacity: int, centroids: bool):
+    """One level's slots: ``table_size`` (a power of two, may be traced) buckets whose numbers
+    fit in ``bits`` (static) bits. Returns ``(bucket or -1, slot, value, order, overflow,
+    origin, dims, dense)`` of the level's ``n`` entries (``n`` = the points' rows)."""
     points = jnp.asarray(points, jnp.float32)
     n = points.shape[0]
     cell_size = jnp.asarray(cell_size, jnp.float32)
@@ -142,8 +145,9 @@ def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, 
     top = jnp.max(jnp.where(valid[:, None], cells, -big), axis=0)
     origin = jnp.where(jnp.any(valid), origin, 0)
     dims = jnp.where(jnp.any(valid), top - origin + 1, 1)
-    dense = jnp.prod(dims.astype(jnp.float32)) <= table_size
-    mask = jnp.int32(table_size - 1)
+    table_size = jnp.asarray(table_size, jnp.int32)
+    dense = jnp.prod(dims.astype(jnp.float32)) <= table_size.astype(jnp.float32)
+    mask = table_size - 1
     bucket = jnp.where(valid, _bucket(cells, mask, origin, dims, dense), table_size)
     if centroids:
         # one entry per occupied half-size sub-cell: its centroid (a voxel-grid downsample at
@@ -152,7 +156,7 @@ def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, 
         octant = (sub[:, 0] & 1) | ((sub[:, 1] & 1) << 1) | ((sub[:, 2] & 1) << 2)
         # (bucket, octant) as one key (tables stay below 2^28 buckets), then the cell
         bucket_octant = bucket * 8 + octant
-        order = lexsort_rows(((bucket_octant, table_size.bit_length() + 3), (cell_id, 31)))
+        order = lexsort_rows(((bucket_octant, bits + 3), (cell_id, 31)))
         sbo, sc = bucket_octant[order], cell_id[order]
         sb = jnp.right_shift(sbo, 3)
         seg_start = jnp.concatenate([jnp.ones((1,), bool), (sbo[1:] != sbo[:-1]) | (sc[1:] != sc[:-1])])
@@ -169,10 +173,10 @@ def _build_level(points, count, cell_size, table_size: int, cell_capacity: int, 
         # subset: a multiplicative scramble of the rows (a permutation when n is a power of two)
         scramble = rows.astype(jnp.uint32) * np.uint32(2654435761)
         if n & (n - 1) == 0:
-            order = lexsort_rows(((bucket, table_size.bit_length()),),
+            order = lexsort_rows(((bucket, bits),),
                                  first=(scramble & np.uint32(n - 1)).astype(jnp.int32))
         else:
-            order = lexsort_rows(((bucket, table_size.bit_length()), (scramble >> 1, 31)))
+            order = lexsort_rows(((bucket, bits), (scramble >> 1, 31)))
         sb = bucket[order]
         value = safe[order]
         is_start = jnp.concatenate([jnp.ones((1,), bool), sb[1:] != sb[:-1]])
@@ -214,16 +218,28 @@ def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 
 
 @partial(jax.jit, static_argnames=("table_sizes", "cell_capacity", "centroid_levels"))
 def _build_grids_jit(points, count, sizes, *, table_sizes, cell_capacity, centroid_levels):
-    rows, slots, values, orders, ovs, bases, boxes = [], [], [], [], [], [], []
     num_rows = sum(t + 1 for t in table_sizes)  # each level's row t is its always-empty sink
-    base = 0
-    for l, t in enumerate(table_sizes):
-        r, k, value, order, ov, origin, dims, dense = _build_level(points, count, sizes[l], t, cell_capacity,
-                                                                   centroid_levels[l])
-        rows.append(jnp.where(r >= 0, base + r, num_rows))  # num_rows: out of bounds, dropped
-        slots.append(k), values.append(value), orders.append(order), ovs.append(ov), bases.append(base)
-        boxes.append((origin, dims, dense))
-        base += t + 1
+    bases = np.cumsum([0] + [t + 1 for t in table_sizes[:-1]]).tolist()
+    rows, slots, values, orders, ovs, boxes = [], [], [], [], [], []
+    # consecutive levels of one kind are built by one loop over them (one body to compile),
+    # their bucket numbers packed in the widest level's bits
+    start = 0
+    while start < len(table_sizes):
+        stop = start + 1
+        while stop < len(table_sizes) and centroid_levels[stop] == centroid_levels[start]:
+            stop += 1
+        group = range(start, stop)
+        bits = max(table_sizes[l].bit_length() for l in group)
+        build = partial(_build_level, points, count, bits=bits, cell_capacity=cell_capacity,
+                        centroids=centroid_levels[start])
+        per_level = jnp.asarray([table_sizes[l] for l in group], jnp.int32)
+        r, k, value, order, ov, origin, dims, dense = jax.lax.map(
+            lambda a: build(a[0], a[1]), (sizes[start:stop], per_level))
+        for i, l in enumerate(group):
+            rows.append(jnp.where(r[i] >= 0, bases[l] + r[i], num_rows))  # num_rows: out of bounds, dropped
+            slots.append(k[i]), values.append(value[i]), orders.append(order[i]), ovs.append(ov[i])
+            boxes.append((origin[i], dims[i], dense[i]))
+        start = stop
     # one table for all levels, filled by one scatter per array (no per-level tables to concatenate)
     rows, slots = jnp.concatenate(rows), jnp.concatenate(slots)
     xyz = jnp.full((3, num_rows, cell_capacity), _FAR, jnp.float32).at[:, rows, slots].set(

@@ -18,7 +18,9 @@ cloud (``_coarse``, padded to the source's rows) and the last stage on the sourc
 registration compiles one loop body. A stage change restarts the acceleration history and the
 stall count. ``run_until`` runs the coarse stages alone (their own loop) until a given stage,
 and ``register`` resumes from its ``Progress`` with the last stage's loop (``icp_multi``'s basin
-merging).
+merging). A registration's loop ends with one more pass that searches the full cloud at the
+result for the report (``_iteration_then_final``), so its program holds the search once
+(``docs/design.md``, "One grid build per kind of level, one search per ICP program").
 """
 
 from __future__ import annotations
@@ -89,6 +91,16 @@ class LoopState(NamedTuple):
     energy_best: jax.Array  # () float32 [m^2], the stage's lowest truncated energy
     stall: jax.Array  # () int32, iterations without a new best energy
     path: IcpPath | None = None  # the iterations so far (register_with_path), else None
+    final: Final | None = None  # the result's correspondences (a loop that reports), else None
+
+
+class Final(NamedTuple):
+    """The full cloud's correspondences at the result (``T_plain``, last stage), searched by
+    the loop's last pass (``_iteration_then_final``) for the report."""
+
+    d2: jax.Array  # (n,) float32 [m^2]
+    matches: Matches
+    done: jax.Array  # () bool, searched
 
 
 class IcpPath(NamedTuple):
@@ -188,12 +200,15 @@ def _stop_rules(problem: Problem, s: LoopState, energy, change, reject, enough, 
     return stall, energy_best, finish, advance
 
 
-def _iteration(problem: Problem, loop: Loop, s: LoopState) -> LoopState:
-    """One ICP iteration: match, solve, decide, accelerate."""
+def _iteration(problem: Problem, loop: Loop, s: LoopState, found=None) -> LoopState:
+    """One ICP iteration: match, solve, decide, accelerate. ``found``: ``(queries, d2,
+    Matches)`` of the stage's search at ``progress.T`` when already done."""
     p = s.progress
     last = p.stage == problem.last_stage
-    queries = stage_queries(loop, p.stage, problem.last_stage)
-    d2, m = correspond(problem, p.T, p.stage, queries)
+    if found is None:
+        queries = stage_queries(loop, p.stage, problem.last_stage)
+        found = (queries, *correspond(problem, p.T, p.stage, queries))
+    queries, d2, m = found
     energy = truncated_energy(problem, d2, p.stage, queries.weights)
     # safeguard (Zhang et al. 2021): an accelerated iterate that does not lower the energy is
     # replaced by the plain step it extrapolated from
@@ -222,6 +237,23 @@ def _iteration(problem: Problem, loop: Loop, s: LoopState) -> LoopState:
         stall=jnp.where(advance, 0, stall).astype(jnp.int32),
         path=_recorded(s.path, p.iteration, T_plain, d2, m.inlier, problem.dists[p.stage]),
     )
+
+
+def _iteration_then_final(problem: Problem, loop: Loop, running, s: LoopState) -> LoopState:
+    """One ICP iteration while ``running(s)``; then, once, the search of the full cloud at the
+    result (``LoopState.final``). Both are one search in one body, so a registration compiles
+    the search once."""
+    go = running(s)
+    last = problem.last_stage
+    stage = jnp.where(go, s.progress.stage, last)
+    queries = stage_queries(loop, stage, last)
+    d2, m = correspond(problem, jnp.where(go, s.progress.T, s.T_plain), stage, queries)
+    before = s._replace(final=None)
+    stepped = _iteration(problem, loop, before, (queries, d2, m))
+    out = jax.tree.map(lambda a, b: jnp.where(go, a, b), stepped, before)
+    take = ~go & ~s.final.done
+    matches = Matches(*(jnp.where(take, a, b) for a, b in zip(m, s.final.matches)))
+    return out._replace(final=Final(jnp.where(take, d2, s.final.d2), matches, s.final.done | take))
 
 
 # ----------------------------------------------------------------------------- the loops
@@ -277,23 +309,40 @@ def _in_loop(loop: Loop, stage, last_stage: int):
 
 
 def _iterate(problem: Problem, clouds: QueryClouds, start: Progress, *, max_iterations: int,
-             run_coarse: bool = True, stop_stage=None, stop_when=None, record: bool = False) -> LoopState:
+             run_coarse: bool = True, stop_stage=None, stop_when=None, record: bool = False,
+             report: bool = False) -> LoopState:
     """Run the loops from ``start``. Each loop's correspondences are as long as its clouds and
-    start empty; the rest of the state carries over. ``record`` (static): keep an ``IcpPath``."""
+    start empty; the rest of the state carries over. ``record`` (static): keep an ``IcpPath``;
+    ``report`` (static, a run of one loop that reaches the last stage): end with the search of
+    ``LoopState.final``."""
     T0 = jax.lax.stop_gradient(jnp.asarray(start.T, jnp.float32))
     state = LoopState(Progress(T0, *(jnp.asarray(x) for x in start[1:])), None, T0, jnp.bool_(False),
                       jnp.float32(jnp.inf), empty_history(T0), jnp.float32(jnp.inf), jnp.int32(0),
                       empty_path(max_iterations) if record else None)
     last = problem.last_stage
-    for loop in _loops(clouds, run_coarse=run_coarse, run_last=stop_stage is None):
+    loops = _loops(clouds, run_coarse=run_coarse, run_last=stop_stage is None)
+    if report and (len(loops) != 1 or stop_stage is not None):
+        raise ValueError("only a run of one loop to the last stage reports")
+    for loop in loops:
         rows = loop.clouds.points.shape[1]
-        state = state._replace(matches=Matches(jnp.zeros((rows,), jnp.int32), jnp.zeros((rows,), bool),
-                                               jnp.zeros((rows, 3), jnp.float32)))
-        state = jax.lax.while_loop(
-            lambda st, loop=loop: (_running(st.progress, max_iterations, stop_stage, stop_when)
-                                   & _in_loop(loop, st.progress.stage, last)),
-            partial(_iteration, problem, loop), state)
+        state = state._replace(matches=_no_matches(rows))
+
+        def running(st, loop=loop):
+            return (_running(st.progress, max_iterations, stop_stage, stop_when)
+                    & _in_loop(loop, st.progress.stage, last))
+
+        if report:
+            n = clouds.full.points.shape[0]
+            state = state._replace(final=Final(jnp.zeros((n,), jnp.float32), _no_matches(n), jnp.bool_(False)))
+            state = jax.lax.while_loop(lambda st, running=running: running(st) | ~st.final.done,
+                                       partial(_iteration_then_final, problem, loop, running), state)
+        else:
+            state = jax.lax.while_loop(running, partial(_iteration, problem, loop), state)
     return state
+
+
+def _no_matches(rows: int) -> Matches:
+    return Matches(jnp.zeros((rows,), jnp.int32), jnp.zeros((rows,), bool), jnp.zeros((rows, 3), jnp.float32))
 
 
 def run_until(problem: Problem, source, source_count, start: Progress, stop_stage, *, max_iterations: int,
@@ -314,7 +363,7 @@ def register(problem: Problem, source, source_count, target, start: Progress, *,
     Vmappable over ``start`` (with ``problem.two_phase=False``). The result's transform carries
     the implicit derivative of the fixed point (``implicit_step``)."""
     clouds = query_clouds(source, source_count, problem.dists, problem.coarse_matching)
-    state = _iterate(problem, clouds, start, max_iterations=max_iterations, run_coarse=run_coarse)
+    state = _iterate(problem, clouds, start, max_iterations=max_iterations, run_coarse=run_coarse, report=True)
     return _report(problem, source, source_count, target, clouds, state)
 
 
@@ -324,7 +373,7 @@ def register_with_path(problem: Problem, source, source_count, target, start: Pr
     iterations (recording changes no iterate), so the path's last recorded transform is the
     result's ``T_target_source``."""
     clouds = query_clouds(source, source_count, problem.dists, problem.coarse_matching)
-    state = _iterate(problem, clouds, start, max_iterations=max_iterations, record=True)
+    state = _iterate(problem, clouds, start, max_iterations=max_iterations, record=True, report=True)
     return _report(problem, source, source_count, target, clouds, state), state.path
 
 
@@ -334,7 +383,7 @@ def _report(problem: Problem, source, source_count, target, clouds: QueryClouds,
     last = problem.last_stage
     p, T = state.progress, state.T_plain
     status = jnp.where(p.done, p.status, Status.MAX_ITERATIONS).astype(jnp.int32)
-    d2, m_fin = correspond(problem, T, jnp.int32(last), clouds.full)
+    d2, m_fin = state.final.d2, state.final.matches  # at T, the last stage, the full cloud
     m = state.matches
     if clouds.coarse is not None:
         # stopped on a coarse stage (max_iterations): its correspondences name centroids of a
