@@ -387,8 +387,9 @@ def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: floa
         for pts, o in zip(clouds[start:start + batch_size], origins[start:start + batch_size]):
             upd = compute_update(pts, o, m.resolution, max_range, plan=plan)
             k = int(upd.count)
-            words.append(np.asarray(upd.words[:k]))
-            deltas.append(np.where(np.asarray(upd.occupied[:k]), np.float32(p.hit_log_odds),
+            # sliced on the host: a device slice compiles a program for every length k
+            words.append(np.asarray(upd.words)[:k])
+            deltas.append(np.where(np.asarray(upd.occupied)[:k], np.float32(p.hit_log_odds),
                                    np.float32(p.miss_log_odds)).astype(np.float32))
         n = sum(len(d) for d in deltas)
         if n == 0:

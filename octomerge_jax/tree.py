@@ -390,13 +390,34 @@ def _apply(m: OccupancyMap, words, deltas, valid) -> OccupancyMap:
     plan = _plan_updates_jit(m, words, valid)
     num_split, num_unique, num_touched = (int(x) for x in jax.device_get(
         (plan["num_split"], plan["num_unique"], plan["num_touched"])))
-    splits = _plan_splits(plan, bucket_capacity(num_split, 256))
+    splits = _plan_splits(plan, _split_rows(num_split, n))
     num_fill = int(splits["num_fill"])
     needed = m.num_leaves - num_touched + num_fill + num_unique
     cap = bucket_capacity(max(needed, m.capacity))
     check_allocation(3 * cap * 16, f"voxel updates: {needed} leaves after {num_unique} updated "
                      f"voxels on a map of {m.num_leaves} leaves at {m.resolution:g} m")
+    if cap > m.capacity:  # grown first: the update compiles once per output capacity
+        m, plan = _grown(m, plan, cap)
     return _apply_updates(m, plan, splits, deltas, bucket_capacity(num_fill, 256), cap)
+
+
+def _split_rows(num_split: int, n: int) -> int:
+    """Rows of ``_plan_splits`` for ``num_split`` voxels inside coarse leaves among ``n``
+    updates: ``256 * 16^k``, at most ``n``'s bucket. Steps of 16 rather than 2: a run of scans
+    meets a few sizes, so the updates compile a few programs (the rows cost little)."""
+    rows = 256
+    while rows < num_split:
+        rows *= 16
+    return min(rows, bucket_capacity(n))
+
+
+def _grown(m: OccupancyMap, plan: dict, capacity: int) -> tuple[OccupancyMap, dict]:
+    """``m`` and its update ``plan`` padded to ``capacity`` rows (padding rows go last)."""
+    code, depth, log_odds = padding_rows(capacity - m.capacity)
+    grown = OccupancyMap(jnp.concatenate([m.code, code]), jnp.concatenate([m.depth, depth]),
+                         jnp.concatenate([m.log_odds, log_odds]), m.count, m.params, m.resolution, m.tree_depth)
+    touched = jnp.concatenate([plan["touched"], jnp.zeros((capacity - m.capacity,), bool)])
+    return grown, {**plan, "touched": touched}
 
 
 def _pad_rows(x, n_cap, fill):
