@@ -21,6 +21,7 @@ import os
 import pickle
 import platform
 import threading
+import weakref
 from pathlib import Path
 
 import jax
@@ -30,7 +31,7 @@ from ._fileutil import atomic_output, remove_stale_temp_files
 from ._ops import is_traced
 
 __all__ = ["DEFAULT_MAX_BYTES", "LOAD_EVENT", "StoredJit", "stored_jit", "open_store", "close_store", "store_dir",
-           "tidy_store", "compile_listener"]
+           "tidy_store", "compile_listener", "forget_programs"]
 
 LOAD_EVENT = "/octomerge_jax/kernel_store/loads"
 """``jax.monitoring`` event recorded for every program loaded from the store."""
@@ -43,6 +44,7 @@ _KEYS_LOCK = threading.Lock()
 _KEY_LOCKS: dict[str, threading.Lock] = {}
 _LISTENER: contextvars.ContextVar = contextvars.ContextVar("octomerge_compile_listener", default=None)
 _STATE: dict = {"dir": None, "environment": None, "backend_ready": False}
+_KERNELS: weakref.WeakSet = weakref.WeakSet()  # every StoredJit, for forget_programs
 _FORMAT = 1
 
 
@@ -205,6 +207,18 @@ def compile_listener(callback):
         _LISTENER.reset(token)
 
 
+def forget_programs() -> None:
+    """Drop every compiled program this process holds, the stored kernels' and ``jax.jit``'s
+    (``jax.clear_caches``); the store on disk is untouched, so a later call loads its program
+    from there. Each compiled program keeps a few memory mappings of its code until dropped, and
+    Linux allows a process 65,530 (``vm.max_map_count``): a process that compiles programs by
+    the thousand, such as a test run, crashes in XLA once it reaches that limit. Call it between
+    independent pieces of such work (``tests/conftest.py`` does, after each test module)."""
+    for kernel in list(_KERNELS):
+        kernel._loaded.clear()
+    jax.clear_caches()
+
+
 def _renamed(fun):
     """``fun`` under the name ``stored_<name>`` (its signature kept), so its programs have their
     own names and keys."""
@@ -238,6 +252,7 @@ class StoredJit:
         self._name = f"{fun.__module__}.{fun.__qualname__}"
         self._loaded: dict[str, object] = {}
         functools.update_wrapper(self, fun)
+        _KERNELS.add(self)
 
     def programs(self) -> int:
         """How many compiled programs this process holds for the kernel (``jax.jit``'s own and

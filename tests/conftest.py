@@ -9,6 +9,7 @@ removed at the end of the run. The kernel store (``kernel_store``) lives in it t
 in every test process, as in a command. The suite compiles with the command's XLA flags
 (``cli.cache.use_fast_compile``): a quarter less compile time."""
 
+import gc
 import os
 import shutil
 import tempfile
@@ -57,6 +58,28 @@ def pytest_configure(config):
 def pytest_configure_node(node):
     """xdist controller: give each worker the run's cache directory."""
     node.workerinput[_KEY] = node.config._octomerge_xla_cache
+
+
+def _memory_maps() -> tuple[int, int]:
+    """``(memory mappings of this process, the kernel's limit)``; ``(0, 1)`` off Linux."""
+    try:
+        with open("/proc/self/maps") as maps, open("/proc/sys/vm/max_map_count") as limit:
+            return sum(1 for _ in maps), int(limit.read())
+    except (OSError, ValueError):
+        return 0, 1
+
+
+@pytest.fixture(autouse=True)
+def _forget_programs():
+    """After a test, once the process holds over half of Linux's limit of memory mappings,
+    drop the compiled programs (later tests reload theirs from the run's cache): a worker that
+    kept all of a run's thousands of programs reached the limit, at which XLA crashes
+    (``kernel_store.forget_programs``)."""
+    yield
+    used, limit = _memory_maps()
+    if used > limit // 2:
+        kernel_store.forget_programs()
+        gc.collect()
 
 
 @pytest.fixture(autouse=True)

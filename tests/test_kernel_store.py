@@ -96,6 +96,21 @@ def test_a_corrupt_entry_is_compiled_again(store):
     np.testing.assert_array_equal(STORED(a, b, scale=5), expected)
 
 
+def test_forget_programs_drops_them_and_the_store_gives_them_back(store):
+    # scale 13: a program no other test compiles (see test_precompile_stores_the_program_a_call_then_runs)
+    a, b = A[:3, :3], B[:3]
+    expected = np.asarray(STORED(a, b, scale=13))
+    plain = jax.jit(lambda x: x * 3.0)
+    plain(b)
+    assert STORED.programs() >= 1 and plain._cache_size() == 1
+    kernel_store.forget_programs()
+    assert STORED.programs() == 0 and plain._cache_size() == 0
+    heard = []
+    with kernel_store.compile_listener(heard.append):
+        np.testing.assert_array_equal(STORED(a, b, scale=13), expected)
+    assert heard == [] and STORED.programs() == 1  # loaded from the store, not compiled
+
+
 def test_dynamic_parameters_after_static_ones_are_refused():
     def f(n, x):
         return x * n
