@@ -213,7 +213,7 @@ def forget_programs() -> None:
     from there. Each compiled program keeps a few memory mappings of its code until dropped, and
     Linux allows a process 65,530 (``vm.max_map_count``): a process that compiles programs by
     the thousand, such as a test run, crashes in XLA once it reaches that limit. Call it between
-    independent pieces of such work (``tests/conftest.py`` does, after each test module)."""
+    independent pieces of such work (``tests/conftest.py`` does, after a test, near the limit)."""
     for kernel in list(_KERNELS):
         kernel._loaded.clear()
     jax.clear_caches()
