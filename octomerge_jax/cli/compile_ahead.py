@@ -14,7 +14,6 @@ from ..budget import current_budget, memory_budget
 from ..kernel_store import compile_listener
 from ..map import OccupancyMap
 from ..pipeline import MergeConfig, Timings, candidate_listener, transform_and_fuse
-from ..pipeline.clouds import occupied_clouds
 from ..pipeline.refine import precompile_polish
 
 __all__ = ["compile_ahead", "BYTES_PER_ROW", "SHARE_OF_BUDGET"]
@@ -52,8 +51,7 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     def work(T):
         with memory_budget(budget), contextlib.suppress(Exception):
             jax.block_until_ready(transform_and_fuse(m1, m2, T, config, Timings())[1:])
-            clouds = occupied_clouds(m1, m2, Timings())
-            precompile_polish(m1, m2, clouds.points_1, clouds.points_2, T, config)
+            precompile_polish(m1, m2, T, config)
 
     def start():
         if not threads and state["compiling"] and state["T"] is not None:

@@ -315,13 +315,17 @@ def _polishes(config: MergeConfig, points_1, points_2) -> bool:
     return config.registration.polish == "gicp" and min(len(points_1), len(points_2)) >= fewest
 
 
-def precompile_polish(m1, m2, points_1, points_2, T_start, config: MergeConfig) -> bool:
-    """Make ready the GICP program ``polish`` would run from ``T_start`` on these clouds
-    (``registration.precompile_gicp``) without running it: ``False`` when the config runs no
-    polish, the clouds are too small or no kernel store is open (``cli.compile_ahead``)."""
-    if config.registration.refine not in ("icp+dense", "global") or not _polishes(config, points_1, points_2):
+def precompile_polish(m1, m2, T_start, config: MergeConfig) -> bool:
+    """Make ready the GICP program ``polish`` would run from ``T_start`` on the maps' occupied
+    clouds (``registration.precompile_gicp``) without running it: ``False`` when the config runs
+    no polish (then no cloud is computed), the clouds are too small or no kernel store is open
+    (``cli.compile_ahead``)."""
+    if config.registration.refine not in ("icp+dense", "global") or config.registration.polish != "gicp":
         return False
-    return reg.precompile_gicp(m1, m2, points_1, points_2, T_start,
+    clouds = occupied_clouds(m1, m2, Timings())
+    if not _polishes(config, clouds.points_1, clouds.points_2):
+        return False
+    return reg.precompile_gicp(m1, m2, clouds.points_1, clouds.points_2, T_start,
                                max_correspondence_distance=GICP_DISTANCE_VOXELS * m1.resolution)
 
 
