@@ -397,7 +397,8 @@ def _apply(m: OccupancyMap, words, deltas, valid) -> OccupancyMap:
     check_allocation(3 * cap * 16, f"voxel updates: {needed} leaves after {num_unique} updated "
                      f"voxels on a map of {m.num_leaves} leaves at {m.resolution:g} m")
     if cap > m.capacity:  # grown first: the update compiles once per output capacity
-        m, plan = _grown(m, plan, cap)
+        plan = {**plan, "touched": jnp.pad(plan["touched"], (0, cap - m.capacity))}
+        m = m.with_capacity(cap)
     return _apply_updates(m, plan, splits, deltas, bucket_capacity(num_fill, 256), cap)
 
 
@@ -409,15 +410,6 @@ def _split_rows(num_split: int, n: int) -> int:
     while rows < num_split:
         rows *= 16
     return min(rows, bucket_capacity(n))
-
-
-def _grown(m: OccupancyMap, plan: dict, capacity: int) -> tuple[OccupancyMap, dict]:
-    """``m`` and its update ``plan`` padded to ``capacity`` rows (padding rows go last)."""
-    code, depth, log_odds = padding_rows(capacity - m.capacity)
-    grown = OccupancyMap(jnp.concatenate([m.code, code]), jnp.concatenate([m.depth, depth]),
-                         jnp.concatenate([m.log_odds, log_odds]), m.count, m.params, m.resolution, m.tree_depth)
-    touched = jnp.concatenate([plan["touched"], jnp.zeros((capacity - m.capacity,), bool)])
-    return grown, {**plan, "touched": touched}
 
 
 def _pad_rows(x, n_cap, fill):
