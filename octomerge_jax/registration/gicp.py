@@ -233,7 +233,7 @@ class _Prepared(NamedTuple):
     n_targets: jax.Array  # () int32 valid rows of ``targets``
     mcd: float  # [m] correspondence distance
     table_size: int  # the target grid's hash table size
-    arguments: tuple  # ``_solve``'s dynamic arguments after ``grid``
+    arguments: tuple  # ``_solve``'s dynamic arguments after ``grid`` and ``targets``
     offsets: tuple  # ``_solve``'s static lattice offsets
 
 
@@ -262,7 +262,7 @@ def _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance
     T0[:3, 3] -= centre
     thresholds = jnp.asarray([m.params.occupancy_threshold_host for m in (m1, m2)])
     targets = jnp.asarray(target)
-    arguments = (targets, jnp.asarray(samples), jnp.int32(n2), jnp.asarray(T0, jnp.float32),
+    arguments = (jnp.asarray(samples), jnp.int32(n2), jnp.asarray(T0, jnp.float32),
                  jnp.asarray(centre, jnp.float32), thresholds, jnp.float32(max_correspondence_distance))
     return _Prepared(T_init, centre, p2, targets, jnp.int32(n1), float(max_correspondence_distance),
                      neighbors.grid_table_size(target.shape[0], 4.0), arguments,
@@ -279,7 +279,8 @@ def precompile_gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_
                     seed)
     grid = jax.eval_shape(lambda t, n: neighbors.build_grid(t, n, prep.mcd, table_size=prep.table_size),
                           prep.targets, prep.n_targets)
-    return _solve.precompile(m1, m2, grid, *prep.arguments, offsets=prep.offsets, max_iterations=int(max_iterations))
+    return _solve.precompile(m1, m2, grid, prep.targets, *prep.arguments, offsets=prep.offsets,
+                             max_iterations=int(max_iterations))
 
 
 def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, max_correspondence_distance: float,
@@ -303,7 +304,7 @@ def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, 
     prep = _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance, num_samples, radius_voxels,
                     seed)
     grid = neighbors.build_grid(prep.targets, prep.n_targets, prep.mcd, table_size=prep.table_size)
-    T, k, settled, n_in, rmse = _solve(m1, m2, grid, *prep.arguments, offsets=prep.offsets,
+    T, k, settled, n_in, rmse = _solve(m1, m2, grid, prep.targets, *prep.arguments, offsets=prep.offsets,
                                        max_iterations=int(max_iterations))
     T_init, centre, p2 = prep.T_init, prep.centre, prep.sources
     T = np.asarray(T, np.float64)
