@@ -60,14 +60,33 @@ def shift_down(x, k: int, fill):
     return jnp.concatenate([pad, x[:-k]], axis=0)
 
 
+def zeros_of(shapes):
+    """Zeros shaped like ``shapes`` (a pytree of arrays or ``jax.ShapeDtypeStruct``)."""
+    return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+
+
+def cond_with_shapes(pred, true_fn, false_fn):
+    """``lax.cond(pred, true_fn, lambda: false_fn(shapes))``, ``shapes`` the
+    ``jax.ShapeDtypeStruct`` pytree of ``true_fn()``'s result, with ``true_fn`` traced once
+    (``jax.eval_shape`` would trace it a second time; it is the fallback should the cond trace
+    the false branch first)."""
+    seen = []
+
+    def true_branch():
+        out = true_fn()
+        seen.append(jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), out))
+        return out
+
+    return jax.lax.cond(pred, true_branch, lambda: false_fn(seen[0] if seen else jax.eval_shape(true_fn)))
+
+
 def materialize(gate, fn):
     """``fn()`` (an array or a pytree of arrays) computed once into memory.
 
     ``gate`` is a traced True (e.g. ``m.count >= 0``): ``fn`` runs inside a ``lax.cond`` on
     it, so XLA cannot fuse (and so recompute) its ops into each consumer. A performance hint
     only: the value is ``fn()``, and under ``vmap`` the cond becomes a select."""
-    shapes = jax.eval_shape(fn)
-    return jax.lax.cond(gate, fn, lambda: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes))
+    return cond_with_shapes(gate, fn, zeros_of)
 
 
 _SCANS = {"add": (jax.lax.cumsum, jnp.add, 0),

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from .. import tree
-from .._ops import bucket_capacity, cumsum, is_traced, padding_rows
+from .._ops import bucket_capacity, cond_with_shapes, cumsum, is_traced, padding_rows, zeros_of
 from ..kernel_store import stored_jit
 from ..map import OccupancyMap
 from ._gaps import gap_cell_once
@@ -173,10 +173,8 @@ def plan_pair(m1: OccupancyMap, m2: OccupancyMap, w1, w2, mode, gap_rows: int) -
     pair = pair_sides(m1, m2, w1, w2, mode)
     sides = pair.sides
     any_gap = sides[0].any_gap | sides[1].any_gap
-    g_shape = jax.eval_shape(lambda: _pair_cells(pair, gap_rows, True)[1])
-    p, g = jax.lax.cond(any_gap, lambda: _pair_cells(pair, gap_rows, True)[:2], lambda: (
-        _pair_cells(pair, gap_rows, False)[0],
-        jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), g_shape)))
+    p, g = cond_with_shapes(any_gap, lambda: _pair_cells(pair, gap_rows, True)[:2],
+                            lambda shapes: (_pair_cells(pair, gap_rows, False)[0], zeros_of(shapes[1])))
     return PairPlan(emit=tuple(s.self_emit for s in sides), vals=tuple(s.self_val for s in sides),
                     before=pair.before, p=p, g=g, any_gap=any_gap, stats=tuple(s.stats for s in sides),
                     total=(p[0][-1] + p[1][-1] + g.missed).astype(jnp.int32),
