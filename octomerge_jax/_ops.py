@@ -48,6 +48,17 @@ def is_traced(*xs) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in xs)
 
 
+def to_device(x, dtype=None):
+    """``x`` as a JAX array of ``dtype`` (default: its own, canonicalised): a JAX array (or
+    tracer) through ``jnp.asarray``, a host value converted by NumPy and sent with
+    ``jax.device_put``. ``jnp.asarray`` of a host array compiles a small program per shape and
+    dtype (``jit(stage)``, ``jit(convert_element_type)``); ``device_put`` compiles none."""
+    if isinstance(x, jax.Array):
+        return jnp.asarray(x, dtype)
+    a = np.asarray(x, dtype)
+    return jax.device_put(a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False))
+
+
 def shift_up(x, k: int, fill):
     """``y[i] = x[i + k]`` along axis 0 (rows past the end take ``fill``); ``k`` static >= 1."""
     pad = jnp.full((k,) + x.shape[1:], fill, x.dtype)

@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import morton
-from ._ops import bucket_capacity, quarter_octave_capacity
+from ._ops import bucket_capacity, quarter_octave_capacity, to_device
 from .budget import check_allocation
 from .kernel_store import stored_jit
 from .map import OccupancyMap
@@ -328,9 +328,9 @@ def compute_update(points, sensor_origin, resolution: float, max_range: float = 
     padded[:n] = pts
     valid = np.arange(cap) < n
     grid, brick_words, marked, bricks, overflow = _trace(
-        jnp.asarray(padded), jnp.asarray(valid), jnp.asarray(origin), jnp.float32(max_range),
-        jnp.asarray(brick_min), jnp.asarray(brick_dims), jnp.int32(n_bricks),
-        jnp.int32(max_steps), resolution=float(resolution), cap_b=cap_b)
+        to_device(padded), to_device(valid), to_device(origin), to_device(max_range, np.float32),
+        to_device(brick_min), to_device(brick_dims), to_device(n_bricks, np.int32),
+        to_device(max_steps, np.int32), resolution=float(resolution), cap_b=cap_b)
     if int(overflow):
         raise RuntimeError(f"internal: {int(overflow)} rays left the planned box or step budget")
     return _extract(grid, brick_words, capacity=plan.grow("marked", int(marked), 256),
@@ -400,5 +400,5 @@ def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: floa
         d = np.zeros((cap,), np.float32)
         w[:n] = np.concatenate(words)
         d[:n] = np.concatenate(deltas)
-        m = apply_voxel_updates(m, jnp.asarray(w), jnp.asarray(d), jnp.asarray(np.arange(cap) < n))
+        m = apply_voxel_updates(m, to_device(w), to_device(d), to_device(np.arange(cap) < n))
     return m

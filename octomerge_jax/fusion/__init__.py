@@ -59,11 +59,10 @@ from __future__ import annotations
 import warnings
 from typing import Sequence
 
-import jax.numpy as jnp
 import numpy as np
 
 from .. import morton
-from .._ops import is_traced
+from .._ops import is_traced, to_device
 from ..map import OccupancyMap
 from ._many import fuse_maps
 from ._pair import fuse_pair
@@ -117,8 +116,8 @@ def fuse_with_report(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, w
     if rule != "weighted":
         weights = (1.0, 1.0)
     check_weights(weights, 2)
-    w1, w2 = (jnp.asarray(w, jnp.float32) for w in weights)
-    mode = jnp.asarray(MODE[rule], jnp.int32)
+    w1, w2 = (to_device(w, np.float32) for w in weights)
+    mode = to_device(MODE[rule], np.int32)
     return FuseResult(*fuse_pair(m1, m2, w1, w2, mode, capacity, prune, gap_capacity, "fuse"))
 
 
@@ -172,11 +171,12 @@ def fuse_many_with_report(maps: Sequence[OccupancyMap], rule: str = "sum", *, we
     if weights is None or rule != "weighted":
         weights = [1.0] * len(maps)
     check_weights(weights, len(maps))
-    w = jnp.asarray(np.asarray(weights, np.float32))
-    mode = jnp.asarray(MODE[rule], jnp.int32)
+    w = np.asarray(weights, np.float32)
+    mode = to_device(MODE[rule], np.int32)
     if len(maps) == 2:  # the pair kernel is the one-pass refinement of two maps
-        return FuseResult(*fuse_pair(maps[0], maps[1], w[0], w[1], mode, capacity, prune, None, "fuse_many"))
-    return FuseResult(*fuse_maps(tuple(maps), w, mode, capacity, prune))
+        return FuseResult(*fuse_pair(maps[0], maps[1], to_device(w[0]), to_device(w[1]), mode, capacity, prune, None,
+                                     "fuse_many"))
+    return FuseResult(*fuse_maps(tuple(maps), to_device(w), mode, capacity, prune))
 
 
 def fuse_many(maps: Sequence[OccupancyMap], rule: str = "sum", *, weights=None,

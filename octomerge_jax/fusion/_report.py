@@ -51,7 +51,8 @@ class FuseReport:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             out[f.name] = np.asarray(v).tolist() if f.name != "capacity" else v
-        out["pruned"] = np.asarray(self.pruned).tolist()  # a list for a vmapped report
+        # on the host (a device subtraction compiles a program); a list for a vmapped report
+        out["pruned"] = (np.asarray(self.refined_cells) - np.asarray(self.leaves_out)).tolist()
         return out
 
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from . import neighbors
 from .. import se3
+from .._ops import to_device
 from ..kernel_store import stored_jit
 from ._icp import pad_points_host
 
@@ -92,5 +93,5 @@ def evaluate_registration(source, target, T_target_source, max_correspondence_di
         source_count = s.shape[0] if source_count is None else source_count
         target_count = t.shape[0] if target_count is None else target_count
     table = neighbors.grid_table_size(t.shape[0], 4.0)
-    return _evaluate(s, jnp.asarray(source_count, jnp.int32), t, jnp.asarray(target_count, jnp.int32),
-                     T_eval, jnp.float32(d), table_size=table, cell_capacity=int(cell_capacity))
+    return _evaluate(s, to_device(source_count, np.int32), t, to_device(target_count, np.int32),
+                     T_eval, to_device(d, np.float32), table_size=table, cell_capacity=int(cell_capacity))

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import morton, se3, tree
-from .._ops import bucket_capacity
+from .._ops import bucket_capacity, to_device
 from ..kernel_store import stored_jit
 from ..map import OccupancyMap
 from . import neighbors
@@ -260,11 +260,11 @@ def _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance
     samples, n2 = pad_points_host(p2, bucket_capacity(min(num_samples, p2.shape[0])), "points_2")
     T0 = T_init.copy()
     T0[:3, 3] -= centre
-    thresholds = jnp.asarray([m.params.occupancy_threshold_host for m in (m1, m2)])
-    targets = jnp.asarray(target)
-    arguments = (jnp.asarray(samples), jnp.int32(n2), jnp.asarray(T0, jnp.float32),
-                 jnp.asarray(centre, jnp.float32), thresholds, jnp.float32(max_correspondence_distance))
-    return _Prepared(T_init, centre, p2, targets, jnp.int32(n1), float(max_correspondence_distance),
+    thresholds = to_device([m.params.occupancy_threshold_host for m in (m1, m2)], np.float32)
+    targets = to_device(target)
+    arguments = (to_device(samples), to_device(n2, np.int32), to_device(T0, np.float32),
+                 to_device(centre, np.float32), thresholds, to_device(max_correspondence_distance, np.float32))
+    return _Prepared(T_init, centre, p2, targets, to_device(n1, np.int32), float(max_correspondence_distance),
                      neighbors.grid_table_size(target.shape[0], 4.0), arguments,
                      tuple(map(tuple, ball_offsets(radius_voxels).tolist())))
 

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._ops import to_device
 from .._sort import lexsort_rows
 
 __all__ = ["HashGrid", "build_grid", "build_grids", "nearest", "nearest_with_points", "any_within", "grid_table_size",
@@ -206,7 +207,7 @@ def build_grids(points, count, cell_sizes, *, table_sizes, cell_capacity: int = 
     for t in table_sizes:
         if t < 1 or t & (t - 1) or t > 1 << 27:
             raise ValueError(f"table sizes must be powers of two up to 2^27, got {table_sizes}")
-    sizes = jnp.atleast_1d(jnp.asarray(cell_sizes, jnp.float32))
+    sizes = _as_sizes(cell_sizes)
     if sizes.shape[0] != len(table_sizes):
         raise ValueError(f"{sizes.shape[0]} cell sizes but {len(table_sizes)} table sizes")
     cl = (False,) * len(table_sizes) if centroid_levels is None else tuple(bool(c) for c in centroid_levels)
@@ -259,9 +260,18 @@ def _build_grids_jit(points, count, sizes, *, table_sizes, cell_capacity, centro
     )
 
 
+def _as_sizes(cell_sizes) -> jax.Array:
+    """Cell sizes [m] as a ``(levels,)`` float32 array (host values shaped on the host: a
+    device reshape compiles a program)."""
+    if isinstance(cell_sizes, jax.Array):
+        sizes = jnp.asarray(cell_sizes, jnp.float32)
+        return sizes if sizes.ndim else sizes.reshape(1)
+    return to_device(np.atleast_1d(np.asarray(cell_sizes, np.float32)))
+
+
 def build_grid(points, count, cell_size, *, table_size: int, cell_capacity: int = 8) -> HashGrid:
     """A single-level ``HashGrid`` with cells of edge ``cell_size`` [m]."""
-    return build_grids(points, count, jnp.reshape(jnp.asarray(cell_size, jnp.float32), (1,)),
+    return build_grids(points, count, _as_sizes(cell_size),
                        table_sizes=(table_size,), cell_capacity=cell_capacity)
 
 

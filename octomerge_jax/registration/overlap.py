@@ -19,9 +19,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import neighbors
 from .. import se3
+from .._ops import to_device
 
 __all__ = ["Overlap", "overlap"]
 
@@ -73,10 +75,10 @@ def _overlap_voxel(p1, c1, p2, c2, T_1_2, radius, *, cell_capacity, tables):
 
 
 def _as_padded(points, count, name):
-    p = jnp.asarray(points, jnp.float32)
+    p = to_device(points, np.float32)
     if p.ndim != 2 or p.shape[-1] != 3:
         raise ValueError(f"{name}: expected shape (n, 3), got {p.shape}")
-    return p, jnp.asarray(p.shape[0] if count is None else count, jnp.int32)
+    return p, to_device(p.shape[0] if count is None else count, np.int32)
 
 
 def overlap(points_1, points_2, T_1_2, method: str = "bbox", *, margin: float = 1.0,
@@ -92,11 +94,11 @@ def overlap(points_1, points_2, T_1_2, method: str = "bbox", *, margin: float = 
         se3.check_rigid(T_1_2, "T_1_2")
     p1, c1 = _as_padded(points_1, count_1, "points_1")
     p2, c2 = _as_padded(points_2, count_2, "points_2")
-    T = jnp.asarray(T_1_2, jnp.float32)
+    T = to_device(T_1_2, np.float32)
     if method == "bbox":
-        return _overlap_bbox(p1, c1, p2, c2, T, jnp.float32(margin))
+        return _overlap_bbox(p1, c1, p2, c2, T, np.float32(margin))
     if not float(radius) > 0:
         raise ValueError(f"radius must be positive, got {radius!r}")
     tables = (neighbors.grid_table_size(p1.shape[0]), neighbors.grid_table_size(p2.shape[0]))
-    return _overlap_voxel(p1, c1, p2, c2, T, jnp.float32(radius), cell_capacity=int(cell_capacity),
+    return _overlap_voxel(p1, c1, p2, c2, T, np.float32(radius), cell_capacity=int(cell_capacity),
                           tables=tables)

@@ -101,7 +101,4 @@ def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
     out = merge_with_cells(kernel_out, total, cells.codes, cells.depths, cells.log_odds, m)
     n = out.num_leaves
     cap = bucket_capacity(n)
-    if cap < out.capacity:
-        out = OccupancyMap(out.code[:cap], out.depth[:cap], out.log_odds[:cap], out.count,
-                           out.params, out.resolution, out.tree_depth)
-    return out
+    return out.with_capacity(cap) if cap < out.capacity else out

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import morton
-from .._ops import bucket_capacity, quarter_octave_capacity
+from .._ops import bucket_capacity, quarter_octave_capacity, to_device
 from ..budget import check_allocation
 from ..map import OccupancyMap
 from ..se3 import check_rigid_transform
@@ -323,8 +323,7 @@ def make_plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: in
     wrows = np.full((b_cap, 27), view.nan_row * BRICK_VOXELS, np.int32)
     wrows[:n_b] = rows * BRICK_VOXELS
     inputs = KernelInputs(
-        m, _to_device(view.table, m.log_odds), jnp.asarray(R.T, jnp.float32),
-        jnp.asarray(c, jnp.float32), jnp.asarray(K_d, jnp.int32), jnp.asarray(K_s, jnp.int32),
-        jnp.asarray(bkeys), jnp.asarray(wbp), jnp.asarray(wrows.reshape(-1)), jnp.int32(n_b),
-        jnp.int32(mode_index(method, space)))
+        m, _to_device(view.table, m.log_odds), to_device(R.T, np.float32), to_device(c, np.float32),
+        to_device(K_d, np.int32), to_device(K_s, np.int32), to_device(bkeys), to_device(wbp),
+        to_device(wrows.reshape(-1)), to_device(n_b, np.int32), to_device(mode_index(method, space), np.int32))
     return Plan(inputs, chunk, int(out_capacity), n_b, view.n_dense, cells)

@@ -14,9 +14,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .. import morton
-from .._ops import quarter_octave_capacity
+from .._ops import quarter_octave_capacity, to_device
 from ..budget import check_allocation
 from ..kernel_store import stored_jit
 from ..map import OccupancyMap
@@ -236,7 +237,7 @@ def run_kernel(plan: Plan) -> tuple[OccupancyMap, int]:
     that one. Raises ``RuntimeError`` if a neighbour fell outside its planned window (a bug).
     """
     n_chunks = -(-plan.n_dest_bricks // plan.chunk)
-    fills = (jnp.int32(morton.SENTINEL_HI), jnp.int32(_D))
+    fills = (np.int32(morton.SENTINEL_HI), np.int32(_D))
     bufs = _empty_output(*fills, capacity=plan.out_capacity)
     offset, start, misses = 0, 0, 0
     while True:
@@ -255,4 +256,4 @@ def run_kernel(plan: Plan) -> tuple[OccupancyMap, int]:
         raise RuntimeError(f"transform_map: {misses} interpolation neighbours fell outside "
                            "their planned source window (a bug; please report the transform)")
     m = plan.inputs.m
-    return OccupancyMap(*bufs, jnp.int32(offset), m.params, m.resolution, m.tree_depth), offset
+    return OccupancyMap(*bufs, to_device(offset, np.int32), m.params, m.resolution, m.tree_depth), offset

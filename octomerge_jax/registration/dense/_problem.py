@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ... import morton, se3
+from ..._ops import is_traced, to_device
 from ...map import OccupancyMap, bucket_capacity
 from ...tree import coarsen
 
@@ -225,15 +226,17 @@ def _assemble(built, levels: tuple, mcap: int, pcap: int, center, radius: float,
 
     maps = [b.map1.with_capacity(mcap) for b in built]
     return AlignProblem(
-        map1=jax.tree_util.tree_map(lambda *a: jnp.stack([jnp.asarray(x) for x in a]), *maps),
-        scale=jnp.asarray([2.0 ** -k for k in levels], jnp.float32),
-        points2=jnp.asarray(np.stack([pad(b.points) for b in built])),
-        signed2=jnp.asarray(np.stack([pad(b.signed) for b in built])),
-        weight2=jnp.asarray(np.stack([pad(b.weight) for b in built])),
-        occupied2=jnp.asarray(np.stack([pad(b.occupied, False, bool) for b in built])),
-        center2=jnp.asarray(center, jnp.float32),
-        radius=jnp.asarray(radius, jnp.float32),
-        coverage_norm=jnp.asarray(cn, jnp.float32),
+        # stacked on the host unless traced: a device stack compiles a program per leaf shape
+        map1=jax.tree_util.tree_map(lambda *a: jnp.stack(a) if is_traced(*a) else to_device(
+            np.stack([np.asarray(x) for x in a])), *maps),
+        scale=to_device([2.0 ** -k for k in levels], np.float32),
+        points2=to_device(np.stack([pad(b.points) for b in built])),
+        signed2=to_device(np.stack([pad(b.signed) for b in built])),
+        weight2=to_device(np.stack([pad(b.weight) for b in built])),
+        occupied2=to_device(np.stack([pad(b.occupied, False, bool) for b in built])),
+        center2=to_device(center, np.float32),
+        radius=to_device(radius, np.float32),
+        coverage_norm=to_device(cn, np.float32),
         levels=levels,
         reverse=reverse,
     )

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._ops import to_device
 from ...kernel_store import stored_jit
 from ...map import OccupancyMap
 from ...se3 import check_rigid_transform
@@ -205,8 +206,8 @@ def _options(problem, maxiter, tol, xtol, max_step, min_overlap, min_agreement, 
         if not (np.isfinite(v) and v >= 0):
             raise ValueError(f"{name} must be a non-negative number, got {v!r}")
     xtol = problem.map1.resolution / 100.0 if xtol is None else float(xtol)
-    return _Options(jnp.float32(tol), jnp.float32(xtol), jnp.float32(max_step), jnp.float32(min_overlap),
-                    jnp.float32(min_agreement), jnp.int32(start_level))
+    return _Options(*(to_device(v, np.float32) for v in (tol, xtol, max_step, min_overlap, min_agreement)),
+                    to_device(start_level, np.int32))
 
 
 def solve_alignment(problem: AlignProblem, T_1_2_init, *, maxiter: int = 30, tol: float = 1e-4,
@@ -252,9 +253,9 @@ def solve_alignment(problem: AlignProblem, T_1_2_init, *, maxiter: int = 30, tol
     if T0.ndim == 3:
         for i, T in enumerate(T0):
             check_rigid_transform(T, f"T_1_2_init[{i}]")
-        return _solve_many_jit(problem, jnp.asarray(T0, jnp.float32), opts, **static)
+        return _solve_many_jit(problem, to_device(T0, np.float32), opts, **static)
     T0 = check_rigid_transform(T0, "T_1_2_init")
-    return _solve_jit(problem, jnp.asarray(T0, jnp.float32), opts, **static)
+    return _solve_jit(problem, to_device(T0, np.float32), opts, **static)
 
 
 def solve_alignment_batch(problems: AlignProblem, T_1_2_inits, *, maxiter: int = 30,
