@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ... import se3
-from ..._ops import bucket_capacity, is_traced
+from ..._ops import bucket_capacity, is_traced, to_device
 
 __all__ = ["pad_points", "pad_points_host", "prepare_points", "check_transform", "as_argument", "to_number"]
 
@@ -43,10 +43,10 @@ def prepare_points(points, count, name):
     if count is None and not is_traced(points):
         p, c = pad_points_host(points, None, name)
         return p, np.int32(c), c
-    p = jnp.asarray(points, jnp.float32)
+    p = to_device(points, np.float32)
     if p.ndim != 2 or p.shape[-1] != 3:
         raise ValueError(f"{name}: expected shape (n, 3), got {p.shape}")
-    c = jnp.asarray(p.shape[0] if count is None else count, jnp.int32)
+    c = to_device(p.shape[0] if count is None else count, np.int32)
     host = None if is_traced(c) else int(c)
     return p, c, host
 
