@@ -161,6 +161,7 @@ def main():
     ap.add_argument("--in-process", action="store_true",
                     help="only the in-process table: merge(refine='none') once compiled against the C++ stages")
     a = ap.parse_args()
+    a.data_dir.mkdir(parents=True, exist_ok=True)
     if a.in_process:
         work = Path(tempfile.mkdtemp(prefix="bench_cli_"))
         try:
@@ -175,7 +176,6 @@ def main():
         finally:
             shutil.rmtree(work, ignore_errors=True)
         return
-    a.data_dir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="bench_cli_"))
     cli = [PY, "-m", "octomerge_jax"]
     rows = []
