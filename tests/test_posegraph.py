@@ -120,6 +120,8 @@ def test_isolated_node_is_unplaced_and_covariance_grows_along_a_chain():
     i, j = np.array(edges).T
     r = solve_robust(5, i, j, Z, np.broadcast_to(INFO, (3, 6, 6)))
     assert r.placed.tolist() == [True, True, True, True, False]
+    # a chain closes no loop: its poses are the measurements chained in float64
+    np.testing.assert_allclose(r.T_0_k[3], Z[0] @ Z[1] @ Z[2], atol=1e-12)
     np.testing.assert_array_equal(r.T_0_k[4], np.eye(4))
     assert np.all(np.isnan(r.covariance[4])) and np.all(r.covariance[0] == 0)
     sd = [np.sqrt(np.trace(c[:3, :3])) for c in r.covariance[1:4]]

@@ -14,8 +14,9 @@ the graph (a measurement that closes no consistent triangle and at least one inc
 is rejected), a max-confidence spanning tree for the initial poses, then solves that drop any
 measurement whose residual after the solve exceeds ``max_chi2`` until none does; measurements
 the cycle check rejected that agree with that solution are taken back and the graph solved
-again (once). The
-marginal covariance of every pose is the inverse of the final Gauss-Newton Hessian.
+again (once). When the measurements in use form just the spanning tree (a chain of pairs, no
+loop to close), the tree's chained float64 poses are the optimum and are returned as they are.
+The marginal covariance of every pose is the inverse of the final Gauss-Newton Hessian.
 References: Grisetti et al., "A tutorial on graph-based SLAM" (2010); Yang et al., "Graduated
 non-convexity for robust spatial perception" (2020) for the kernels; map_merge_3d and
 Kimera-Multi for pairwise measurements plus outlier rejection
@@ -384,7 +385,12 @@ def solve_robust(n: int, i, j, T_i_j, information, *, score=None, usable=None, p
             continue
         e = worst[np.argmax(chi2_all[worst])]  # one at a time: the worst may have pulled the others
         why[e], meas[e] = "residual", False
-    T = np.asarray(sol.T_0_k, np.float64)[:n]
+    if sorted(np.flatnonzero(active).tolist()) == sorted(tree):
+        # the edges in use form the spanning tree: its chained float64 poses meet every one of
+        # them exactly (the least-squares optimum), which the float32 solve only approximates
+        T = T0[:n].copy()
+    else:
+        T = np.asarray(sol.T_0_k, np.float64)[:n]
     T = np.stack([se3.project_to_rigid(t) for t in T])
     T[~placed] = np.eye(4)
     cov = np.asarray(sol.covariance, np.float64)[:n]
