@@ -133,15 +133,20 @@ def test_save_fsyncs_the_file_before_the_rename_and_the_folder_after(tmp_path, m
     assert events[2][1] == str(tmp_path)  # the folder, so the rename survives a crash
 
 
-def _stalled_writer(target):
+def _stalled_writer(target, disposition: str, seconds: float = 30.0):
     """A child process in the middle of a save to ``target`` (its temp file written, the
-    rename not yet done), returned once it says so."""
-    p = _child("""
-        import time
+    rename not yet done), returned once it says so. ``disposition`` sets SIGINT and SIGTERM
+    first: ``"default"`` (Ctrl-C raises KeyboardInterrupt, SIGTERM kills, whatever the process
+    that runs the tests ignores: a background job of a shell ignores SIGINT) or ``"ignored"``."""
+    p = _child(f"""
+        import signal, time
+        ignored = {disposition == "ignored"!r}
+        signal.signal(signal.SIGINT, signal.SIG_IGN if ignored else signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN if ignored else signal.SIG_DFL)
         with fu.atomic_output(sys.argv[1]) as tmp:
             open(tmp, "wb").write(b"partial")
             print("writing", flush=True)
-            time.sleep(30)
+            time.sleep({seconds!r})
     """, str(target))
     assert p.stdout.readline().strip() == "writing"
     return p
@@ -151,12 +156,25 @@ def _stalled_writer(target):
 def test_signal_during_a_save_leaves_no_temp_file(tmp_path, sig):
     target = tmp_path / "m.bt"
     target.write_bytes(b"old")
-    p = _stalled_writer(target)
+    p = _stalled_writer(target, "default")
     assert len(_hidden(tmp_path)) == 1
     p.send_signal(sig)
     p.communicate(timeout=30)
     assert p.returncode in (-sig, 1)  # killed by the signal / KeyboardInterrupt
     assert _hidden(tmp_path) == [] and target.read_bytes() == b"old"
+
+
+def test_an_ignored_signal_stays_ignored_during_a_save(tmp_path):
+    """A process that ignores SIGINT / SIGTERM (started by ``nohup`` or as a background job)
+    is not made to stop by a save: the save completes."""
+    target = tmp_path / "m.bt"
+    target.write_bytes(b"old")
+    p = _stalled_writer(target, "ignored", seconds=1.0)
+    p.send_signal(signal.SIGTERM)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 0, err
+    assert _hidden(tmp_path) == [] and target.read_bytes() == b"partial"
 
 
 def test_no_signal_handler_outside_a_save_or_off_the_main_thread(tmp_path):
@@ -181,7 +199,7 @@ def test_no_signal_handler_outside_a_save_or_off_the_main_thread(tmp_path):
 
 def test_leftover_of_a_killed_writer_is_removed_by_the_next_save(tmp_path):
     target = tmp_path / "m.bt"
-    p = _stalled_writer(target)
+    p = _stalled_writer(target, "default")
     p.kill()  # kill -9: no cleanup can run
     p.communicate(timeout=30)
     leftover = _hidden(tmp_path)
