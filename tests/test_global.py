@@ -18,9 +18,9 @@ from octomerge_jax.pipeline import (MergeConfig, Registration, Timings, candidat
                                      merge_batch,
                                     register_global, transform_from_xyz_rpy)
 from octomerge_jax.pipeline.clouds import occupied_clouds
-from octomerge_jax.registration.features import coarse_cloud, neighbor_pairs, normals
-from octomerge_jax.registration.global_search import (MIN_FREE_FRACTION, cell_sets, consistency_score, free_space,
-                                                      level_rotation, nudge_poses, pose_distance,
+from octomerge_jax.registration.features import cell_codes, cell_keys, coarse_cloud, neighbor_pairs, normals
+from octomerge_jax.registration.global_search import (MAX_TABLE_CELLS, MIN_FREE_FRACTION, cell_sets, consistency_score,
+                                                      free_space, level_rotation, nudge_poses, pose_distance,
                                                       translation_candidates, yaw_candidates)
 from octomerge_jax.sim import small_room_map, small_room_voxels, team_maps
 from octomerge_jax.tree import from_voxels
@@ -72,6 +72,29 @@ def test_a_cell_seen_free_in_part_refutes_nothing():
     # without volumes every cell holding a free point is free (both conflict)
     assert consistency_score(s1, cell_sets(np.array([[10.5, 10.5, 10.5]]), free, v), np.eye(4)) == (0, 2)
     assert 0.0 < MIN_FREE_FRACTION < 1.0
+
+
+def test_cell_table_scores_as_the_sorted_codes_do():
+    """``consistency_score`` through the maps' ``CellTable`` (one gather per placed cell) equals
+    the binary searches in their sorted codes, at poses that put cells outside the table on
+    every side; a box over ``MAX_TABLE_CELLS`` keeps the sorted codes alone; ``cell_keys``
+    inverts ``cell_codes``."""
+    rng = np.random.default_rng(5)
+    keys = rng.integers(-(1 << 20), 1 << 20, (1000, 3))
+    np.testing.assert_array_equal(cell_keys(cell_codes(keys)), keys)
+    v = 0.5
+    occupied = [rng.uniform(-4, 4, (300, 3)), rng.uniform(-3, 5, (250, 3))]
+    free = [rng.uniform(-5, 5, (3000, 3)), rng.uniform(-4, 6, (2500, 3))]
+    s1, s2 = (cell_sets(o, f, v) for o, f in zip(occupied, free))
+    assert s1.table is not None and s2.table is not None
+    plain = [s._replace(table=None) for s in (s1, s2)]
+    for _ in range(40):
+        T = se3.from_xyz_rpy(*rng.uniform(-6, 6, 3), *rng.uniform(-0.2, 0.2, 2), rng.uniform(-math.pi, math.pi), xp=np)
+        assert consistency_score(s1, s2, T) == consistency_score(*plain, T)
+    assert consistency_score(s1, s2, np.eye(4))[0] > 0
+    far = cell_sets(np.array([[0.0, 0.0, 0.0], [1e4, 0.0, 0.0], [0.0, 1e4, 0.0]]), np.zeros((0, 3)), 0.25)
+    assert far.table is None and MAX_TABLE_CELLS < 4e4 ** 2
+    assert consistency_score(far, s2, np.eye(4)) == consistency_score(far, plain[1], np.eye(4))
 
 
 def test_grids_offset_so_the_ground_lies_mid_cell():

@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["CoarseCloud", "cell_codes", "coarse_cloud", "coarse_voxel_size", "neighbor_pairs", "normals"]
+__all__ = ["CoarseCloud", "cell_codes", "cell_keys", "coarse_cloud", "coarse_voxel_size", "neighbor_pairs", "normals"]
 
 _BITS = 21  # bits per axis of a cell code
 _OFF = 1 << (_BITS - 1)
@@ -35,6 +35,13 @@ def cell_codes(keys) -> np.ndarray:
     """Cell keys ``(..., 3)`` int (each within +-2^20) packed into int64 codes ``(...)``."""
     k = np.asarray(keys).astype(np.int64) + _OFF
     return (k[..., 0] << (2 * _BITS)) | (k[..., 1] << _BITS) | k[..., 2]
+
+
+def cell_keys(codes) -> np.ndarray:
+    """``cell_codes``' inverse: int64 cell keys ``(..., 3)`` of ``codes (...)``."""
+    c = np.asarray(codes, np.int64)
+    mask = (1 << _BITS) - 1
+    return np.stack([(c >> (2 * _BITS)) & mask, (c >> _BITS) & mask, c & mask], axis=-1) - _OFF
 
 
 def coarse_cloud(points, voxel: float) -> CoarseCloud:

@@ -14,7 +14,9 @@ by a 3-D cross-correlation of the coarse occupancy grids (FFT), a few peaks per 
   cells per translation, less those put into the other map's free space.
 - ``cell_sets`` / ``consistency_score``: a pose's agreeing and conflicting coarse cells; a cell
   is free space only when its map saw a good part of it free (``MIN_FREE_FRACTION``), and each
-  map's grid is offset so that its cell faces avoid its dense planes (``lattice_origin``).
+  map's grid is offset so that its cell faces avoid its dense planes (``lattice_origin``). A
+  map's cells are also kept as one dense table over their box (``CellTable``), so scoring a
+  pose is a gather per placed cell; the candidates' half-cell nudges score hundreds of poses.
 
 The idea is the classic one of rotation from orientation histograms and translation from
 phase-free correlation (e.g. Bosse and Zlot, "Map matching and data association for large-scale
@@ -30,10 +32,11 @@ from typing import NamedTuple
 import numpy as np
 
 from ..map import OccupancyMap
-from .features import CoarseCloud, cell_codes, coarse_cloud, neighbor_pairs, normals
+from .features import CoarseCloud, cell_codes, cell_keys, coarse_cloud, neighbor_pairs, normals
 
-__all__ = ["CellSets", "MIN_FREE_FRACTION", "cell_sets", "consistency_score", "distinct_poses", "free_space",
-           "horizontal_pinning", "lattice_origin", "level_rotation", "map_cell_sets", "net_agreement", "nudge_poses",
+__all__ = ["CellSets", "CellTable", "MAX_TABLE_CELLS", "MIN_FREE_FRACTION", "cell_sets", "cell_table",
+           "consistency_score", "distinct_poses", "free_space", "horizontal_pinning", "lattice_origin",
+           "level_rotation", "map_cell_sets", "net_agreement", "nudge_poses",
            "pose_distance", "rotation_z", "translation_candidates", "yaw_candidates", "CorrelationGrid",
            "correlation_grid", "translation_candidates_of_grids"]
 
@@ -110,14 +113,18 @@ def _free_grid(points, occupied, voxel: float, lo: np.ndarray, volumes=None) -> 
     """1 in the free cells of the grid of ``occupied`` (those without occupied weight; with
     ``volumes (f,)`` [m^3] of the free ``points``, those at least ``MIN_FREE_FRACTION`` seen
     free, as ``cell_sets``)."""
-    k = np.floor(np.asarray(points, np.float64) / voxel).astype(np.int64) - lo
-    inside = np.all((k >= 0) & (k < np.asarray(occupied.shape)), axis=1)
-    k = k[inside]
+    # one row per axis: the passes below run over contiguous rows
+    q = np.array(np.asarray(points, np.float64).reshape(-1, 3).T, order="C")
+    q /= voxel
+    k = np.floor(q, out=q).astype(np.int64) - np.asarray(lo, np.int64)[:, None]
+    s0, s1, s2 = occupied.shape
+    inside = (k[0] >= 0) & (k[0] < s0) & (k[1] >= 0) & (k[1] < s1) & (k[2] >= 0) & (k[2] < s2)
+    cell = ((k[0] * s1 + k[1]) * s2 + k[2])[inside]
     if volumes is None:
-        g = np.zeros(occupied.shape, np.float32)
-        g[k[:, 0], k[:, 1], k[:, 2]] = 1.0
+        g = np.zeros(occupied.size, np.float32)
+        g[cell] = 1.0
+        g = g.reshape(occupied.shape)
     else:
-        cell = np.ravel_multi_index((k[:, 0], k[:, 1], k[:, 2]), occupied.shape)
         seen = np.bincount(cell, np.asarray(volumes, np.float64)[inside], minlength=occupied.size)
         g = _seen_free(seen.reshape(occupied.shape), MIN_FREE_FRACTION).astype(np.float32)
     return np.where(occupied > 0, 0.0, g).astype(np.float32)
@@ -235,6 +242,24 @@ def translation_candidates_of_grids(g1: CorrelationGrid, g2: CorrelationGrid, vo
     return t, np.asarray(scores, np.float64)
 
 
+UNKNOWN, OCCUPIED, FREE = 0, 1, 2  # the cell labels of CellTable
+
+#: the largest ``CellTable`` ``cell_sets`` builds [cells, one byte each]; a map whose cells span a
+#: larger box is looked up in its sorted codes alone
+MAX_TABLE_CELLS = 1 << 25
+
+
+class CellTable(NamedTuple):
+    """A ``CellSets``' cells as one dense table over their bounding box grown by one cell of
+    ``UNKNOWN`` on every side (a key outside the box, clipped into that border, reads
+    ``UNKNOWN``): one gather per placed cell instead of a binary search per set."""
+
+    low: np.ndarray  # (3,) int64: the key of the table's entry (1, 1, 1)
+    high: np.ndarray  # (3,) int64: the largest index per axis (the far border)
+    strides: np.ndarray  # (3,) int64: flat strides of the table
+    label: np.ndarray  # (cells,) int8: UNKNOWN, OCCUPIED or FREE, flattened
+
+
 class CellSets(NamedTuple):
     """A map's occupied and free cells on a coarse grid (``cell_sets``) whose cell corners lie
     at ``origin + k voxel`` in the map's frame."""
@@ -242,6 +267,8 @@ class CellSets(NamedTuple):
     occupied: CoarseCloud  # one point per occupied cell (centroids less origin, sorted codes)
     free_codes: np.ndarray  # (f,) int64 sorted codes of free cells that hold no occupied point
     origin: np.ndarray  # (3,) float64 [m]: the grid's offset, lattice_origin of the occupied points
+    table: CellTable | None = None  # both as one table (None: none built, or over MAX_TABLE_CELLS)
+    centres: np.ndarray | None = None  # (3, m) float64 [m]: occupied.points + origin, one row per axis
 
 
 def lattice_origin(points, voxel: float, bins: int = 24) -> np.ndarray:
@@ -293,7 +320,36 @@ def cell_sets(points, free, voxel: float, free_volumes=None,
     if free_volumes is not None:
         volume = np.bincount(inverse.ravel(), np.asarray(free_volumes, np.float64), minlength=codes.shape[0])
         keep &= _seen_free(volume, min_free_fraction)
-    return CellSets(occ, codes[keep], origin)
+    free_codes = codes[keep]
+    return CellSets(occ, free_codes, origin, cell_table(occ.keys, cell_keys(free_codes)),
+                    np.ascontiguousarray((occ.points + origin).T))
+
+
+def cell_table(occupied_keys, free_keys) -> CellTable | None:
+    """The ``CellTable`` of the cells with keys ``occupied_keys (m, 3)`` and ``free_keys (f, 3)``
+    (int), or ``None`` when there are none or their box grown by a cell on every side holds over
+    ``MAX_TABLE_CELLS`` cells."""
+    occupied_keys = np.asarray(occupied_keys, np.int64).reshape(-1, 3)
+    free_keys = np.asarray(free_keys, np.int64).reshape(-1, 3)
+    keys = np.concatenate([occupied_keys, free_keys])
+    if keys.shape[0] == 0:
+        return None
+    low = keys.min(axis=0)
+    shape = keys.max(axis=0) - low + 3
+    if int(np.prod(shape)) > MAX_TABLE_CELLS:
+        return None
+    strides = np.array([shape[1] * shape[2], shape[2], 1], np.int64)
+    label = np.zeros(int(np.prod(shape)), np.int8)
+    label[(free_keys - low + 1) @ strides] = FREE
+    label[(occupied_keys - low + 1) @ strides] = OCCUPIED
+    return CellTable(low, shape - 1, strides, label)
+
+
+def _labels_at(table: CellTable, keys) -> np.ndarray:
+    """``(n,)`` int8 labels of the cells with ``keys (3, n)`` int64 (``UNKNOWN`` outside the table)."""
+    k = keys - (table.low - 1)[:, None]
+    np.clip(k, 0, table.high[:, None], out=k)
+    return table.label.take(k[0] * table.strides[0] + k[1] * table.strides[1] + k[2])
 
 
 def map_cell_sets(points, m: OccupancyMap, voxel: float) -> CellSets:
@@ -358,19 +414,32 @@ def consistency_score(s1: CellSets, s2: CellSets, T_1_2) -> tuple[int, int]:
     1, and occupied cells of either map landing in the other's free cells (both directions):
     the measure the translation correlation maximises (``agree - conflict``), at any pose."""
     T = np.asarray(T_1_2, np.float64)
+    T_inv = np.linalg.inv(T)
+    if s1.table is not None and s2.table is not None:
+        in_1 = np.bincount(_labels_at(s1.table, _placed_keys(s2, s1, T)), minlength=3)
+        in_2 = np.bincount(_labels_at(s2.table, _placed_keys(s1, s2, T_inv)), minlength=3)
+        return int(in_1[OCCUPIED]), int(in_1[FREE]) + int(in_2[FREE])
     c = _placed_codes(s2, s1, T)
     agree = int(_member(s1.occupied.codes, c).sum())
     conflict = int(_member(s1.free_codes, c).sum())
-    conflict += int(_member(s2.free_codes, _placed_codes(s1, s2, np.linalg.inv(T))).sum())
+    conflict += int(_member(s2.free_codes, _placed_codes(s1, s2, T_inv)).sum())
     return agree, conflict
 
 
-def _placed_codes(source: CellSets, target: CellSets, T_target_source) -> np.ndarray:
-    """Codes of the cells of ``target``'s grid that ``source``'s occupied cells (their
-    centroids) land in under ``T_target_source (4, 4)``."""
+def _placed_keys(source: CellSets, target: CellSets, T_target_source) -> np.ndarray:
+    """``(3, m)`` int64 keys (one row per axis) of the cells of ``target``'s grid that
+    ``source``'s occupied cells (their centroids) land in under ``T_target_source (4, 4)``."""
     T = T_target_source
-    q = (source.occupied.points + source.origin) @ T[:3, :3].T + T[:3, 3] - target.origin
-    return cell_codes(np.floor(q / target.occupied.voxel).astype(np.int64))
+    centres = source.centres if source.centres is not None else (source.occupied.points + source.origin).T
+    q = T[:3, :3] @ centres
+    q += (T[:3, 3] - target.origin)[:, None]
+    q /= target.occupied.voxel
+    return np.floor(q, out=q).astype(np.int64)
+
+
+def _placed_codes(source: CellSets, target: CellSets, T_target_source) -> np.ndarray:
+    """``(m,)`` ``cell_codes`` of ``_placed_keys``."""
+    return cell_codes(_placed_keys(source, target, T_target_source).T)
 
 
 def horizontal_pinning(s1: CellSets, s2: CellSets, T_1_2, radius: float) -> float:
