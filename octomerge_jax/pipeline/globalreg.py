@@ -147,9 +147,18 @@ def _pad(q, cap: int) -> np.ndarray:
     return np.concatenate([q, np.zeros((cap - q.shape[0], 3), np.float32)])
 
 
+class _Search(NamedTuple):
+    """What ``_search_poses`` leaves for the verification."""
+
+    voxel: float  # [m] the coarse cell edge
+    correlation_voxel: float  # [m] the correlation grids' cell edge (>= voxel)
+    free_1: tuple  # free_space(m1, correlation_voxel): (points (f, 3) [m], volumes (f,) [m^3])
+    free_2: tuple  # the same for m2
+
+
 def _search_poses(m1, m2, p1, p2, resolution: float, timings: Timings):
     """Coarse clouds, levelling, yaw and translation candidates (``registration.global_search``):
-    ``(c1, c2, poses (k, 4, 4) T_1_2, correlation scores (k,), info)``."""
+    ``(c1, c2, poses (k, 4, 4) T_1_2, correlation scores (k,), info, _Search)``."""
     with timings.stage("features"):
         def cells(v):
             return max(np.unique(cell_codes(np.floor(p / v))).shape[0] for p in (p1, p2))
@@ -180,7 +189,8 @@ def _search_poses(m1, m2, p1, p2, resolution: float, timings: Timings):
     info = {"coarse_voxel": round(v, 4), "correlation_voxel": round(v_corr, 4),
             "coarse_points": [int(c1.points.shape[0]), int(c2.points.shape[0])],
             "yaws": [round(float(y), 4) for y in yaws], "poses": len(poses)}
-    return c1, c2, np.asarray(poses).reshape(-1, 4, 4), np.asarray(scores, np.float64), info
+    search = _Search(v, v_corr, (f1, w1), (f2, w2))
+    return c1, c2, np.asarray(poses).reshape(-1, 4, 4), np.asarray(scores, np.float64), info, search
 
 
 def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | None = None,
@@ -214,8 +224,8 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         if p.shape[0] < rc.min_overlap_points:
             raise MergeError(f"{name} has only {p.shape[0]} occupied voxels: nothing to register "
                              "(use --refine none to merge with the guess as is)", "empty")
-    c1, c2, T_all, corr_scores, info_g = _search_poses(m1, m2, p1, p2, resolution, timings)
-    v = info_g["coarse_voxel"]
+    c1, c2, T_all, corr_scores, info_g, search = _search_poses(m1, m2, p1, p2, resolution, timings)
+    v = search.voxel
     if T_1_2_init is not None:
         T_all = np.concatenate([T_all, np.asarray(T_1_2_init, np.float64)[None]])
     counts = {"occupied_1": int(p1.shape[0]), "occupied_2": int(p2.shape[0])}
@@ -223,7 +233,9 @@ def register_global(m1: OccupancyMap, m2: OccupancyMap, config: MergeConfig | No
         return _nothing(p1, p2, T_1_2_init, counts, info_g)
     extent = max(float(np.linalg.norm(np.ptp(c2.points, axis=0))) / 2.0, v)
     with timings.stage("verify"):
-        s1, s2 = map_cell_sets(p1, m1, v), map_cell_sets(p2, m2, v)
+        same = search.correlation_voxel == v  # then the correlation's free space serves the cell sets
+        s1 = map_cell_sets(p1, m1, v, search.free_1 if same else None)
+        s2 = map_cell_sets(p2, m2, v, search.free_2 if same else None)
         screened = np.array([net_agreement(s1, s2, T, CONFLICT_WEIGHT) for T in T_all], np.float64)
         picked = list(distinct_poses(T_all, screened, extent, 2.0 * v, _NUM_REFINED))
         # and the best after half-cell nudges, if another: a pose a third of a cell off ranks low

@@ -352,10 +352,11 @@ def _labels_at(table: CellTable, keys) -> np.ndarray:
     return table.label.take(k[0] * table.strides[0] + k[1] * table.strides[1] + k[2])
 
 
-def map_cell_sets(points, m: OccupancyMap, voxel: float) -> CellSets:
+def map_cell_sets(points, m: OccupancyMap, voxel: float, free=None) -> CellSets:
     """``cell_sets`` of a map's occupied ``points (n, 3)`` [m] and its free space
-    (``free_space``, volumes counted) on a grid of ``voxel`` [m]."""
-    free, volumes = free_space(m, voxel)
+    (``free_space``, volumes counted) on a grid of ``voxel`` [m]. ``free``: ``free_space(m,
+    voxel)`` when the caller has it already (not computed again)."""
+    free, volumes = free_space(m, voxel) if free is None else free
     return cell_sets(points, free, voxel, volumes)
 
 
