@@ -132,7 +132,7 @@ def _aligned_full(shape, fill, dtype, align: int = 64) -> np.ndarray:
     return out
 
 
-def _to_device(x: np.ndarray, like: jax.Array) -> jax.Array:
+def _shared_on_device_of(x: np.ndarray, like: jax.Array) -> jax.Array:
     """Host array -> an array on the device of ``like``. On a CPU device an aligned array is
     shared, not copied; elsewhere a plain transfer."""
     devices = like.devices() if isinstance(like, jax.Array) else set()
@@ -323,7 +323,7 @@ def make_plan(m: OccupancyMap, T: np.ndarray, method: str, space: str, chunk: in
     wrows = np.full((b_cap, 27), view.nan_row * BRICK_VOXELS, np.int32)
     wrows[:n_b] = rows * BRICK_VOXELS
     inputs = KernelInputs(
-        m, _to_device(view.table, m.log_odds), to_device(R.T, np.float32), to_device(c, np.float32),
+        m, _shared_on_device_of(view.table, m.log_odds), to_device(R.T, np.float32), to_device(c, np.float32),
         to_device(K_d, np.int32), to_device(K_s, np.int32), to_device(bkeys), to_device(wbp),
         to_device(wrows.reshape(-1)), to_device(n_b, np.int32), to_device(mode_index(method, space), np.int32))
     return Plan(inputs, chunk, int(out_capacity), n_b, view.n_dense, cells)
