@@ -492,26 +492,40 @@ def _pick(T_pick):
                      swapped=np.bool_(False))
 
 
-def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():  # simulates the demo's lab (~15 s), merges 3 times
-    """``octomerge demo``'s job with ``refine="icp+dense"``: the dense alignment, started at the
-    level of ICP's last correspondence distance, brings ICP's result (0.106 m) within a quarter
-    voxel (0.020 m measured). Run from the coarsest level it had carried ICP's result 0.33 m /
-    0.07 rad off (the 0.8 and 0.4 m levels prefer that pose). The same when ICP runs out of
-    iterations on its last stage (it did at 100 iterations from 0.3 m under other XLA flags)."""
+@lru_cache(maxsize=None)
+def _demo_lab():
+    """``(m1, m2, T_1_2, guess)`` of ``octomerge demo``'s job (the lab simulated, ~15 s)."""
     from octomerge_jax.cli.demo import perturbed_guess
     from octomerge_jax.pipeline import DemoConfig
     from octomerge_jax.sim import make_two_robot_maps
 
     d = DemoConfig()
     m1, m2, T = make_two_robot_maps(d.scene, d.resolution, spacing=d.spacing or None, seed=d.seed)
-    guess = perturbed_guess(T, d.error_xyz, d.error_rpy_rad)
+    return m1, m2, T, perturbed_guess(T, d.error_xyz, d.error_rpy_rad)
+
+
+def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():  # simulates the demo's lab (~15 s), merges twice
+    """``octomerge demo``'s job with ``refine="icp+dense"``: the dense alignment, started at the
+    level of ICP's last correspondence distance, brings ICP's result (0.106 m) within a quarter
+    voxel (0.020 m measured). Run from the coarsest level it had carried ICP's result 0.33 m /
+    0.07 rad off (the 0.8 and 0.4 m levels prefer that pose)."""
+    m1, m2, T, guess = _demo_lab()
     _, rep_icp = merge(m1, m2, guess, refine="icp", T_1_2_true=T)
     no_polish = MergeConfig().replace(registration={"polish": "none"})  # the dense step's own result
     _, rep = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T, config=no_polish)
     dense = rep.icp["dense"]
     assert dense["status"] == 0 and dense["start_level"] > 0, dense
     assert rep.displacement < min(0.05, 0.5 * rep_icp.displacement), (rep.displacement, rep_icp.displacement)
-    short = no_polish.replace(registration={"max_iterations": rep_icp.icp["num_iterations"] - 5})
+
+
+@pytest.mark.slow  # simulates the demo's lab (~15 s), compiles ICP for another iteration bound
+def test_icp_plus_dense_on_the_demo_lab_when_icp_runs_out_of_iterations():
+    """As above when ICP runs out of iterations on its last stage (it did at 100 iterations from
+    0.3 m under other XLA flags): the dense step still starts below the coarsest level and ends
+    within a quarter voxel."""
+    m1, m2, T, guess = _demo_lab()
+    _, rep_icp = merge(m1, m2, guess, refine="icp", T_1_2_true=T)
+    short = MergeConfig().replace(registration={"polish": "none", "max_iterations": rep_icp.icp["num_iterations"] - 5})
     _, rep_short = merge(m1, m2, guess, refine="icp+dense", T_1_2_true=T, config=short)
     assert rep_short.icp["status"] == "max_iterations" and rep_short.icp["dense"]["start_level"] > 0, rep_short.icp
     assert rep_short.displacement < 0.05, rep_short.displacement
