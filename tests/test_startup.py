@@ -80,6 +80,9 @@ def test_warmup_rejects_bad_arguments(tmp_path, capsys):
     assert cli.main(["warmup", str(tmp_path / "a.bt")]) == 2
     assert "two maps" in capsys.readouterr().err
     assert cli.main(["warmup", "--res", "-1"]) == 2
+    with pytest.raises(SystemExit) as exc:  # argparse: a mode merge does not have
+        cli.main(["warmup", "--refine", "icp+gicp"])
+    assert exc.value.code == 2 and "invalid choice: 'icp+gicp'" in capsys.readouterr().err
 
 
 @pytest.mark.slow  # compiles a merge's programs (~30 s on 2 idle cores unless the run's cache has them)
@@ -89,6 +92,38 @@ def test_warmup_merges_the_room_pair_into_the_cache(capsys):
     out = capsys.readouterr().out
     assert "room at 0.2 m" in out and "refine none" in out and "programs compiled" in out
     assert f"cache: {cache.worker_env()['JAX_COMPILATION_CACHE_DIR']}" in out
+
+
+@pytest.mark.slow  # compiles the default merges' programs for one size (~1 min on 2 idle cores)
+def test_warmup_readies_what_the_default_merge_commands_run(tmp_path, capsys):
+    """After ``octomerge warmup`` of a size, ``octomerge merge`` of a pair of that size compiles
+    nothing, without a guess (global) and from one (icp+dense): its default modes."""
+    import jax
+
+    from octomerge_jax.cli.warmup import _XYZ_RPY_TRUE
+    from octomerge_jax.io import save
+    from octomerge_jax.pipeline import transform_from_xyz_rpy
+    from octomerge_jax.sim import small_room_map, small_room_voxels
+
+    assert cli.main(["warmup", "--res", "0.2"]) == 0
+    voxels = small_room_voxels(0.2)
+    save(small_room_map((-1.0, 3.0), 0.2, voxels=voxels), tmp_path / "a.bt")
+    save(small_room_map((0.8, 9.0), 0.2, transform_from_xyz_rpy(*_XYZ_RPY_TRUE), voxels=voxels), tmp_path / "b.bt")
+    compiles = []
+
+    def on_compile(event, secs, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(secs)
+
+    jax.monitoring.register_event_duration_secs_listener(on_compile)
+    try:
+        for guess in ([], ["--xyz", "0.4", "-0.2", "0", "--rpy", "0", "0", "0.8"]):
+            cli.main(["merge", str(tmp_path / "a.bt"), str(tmp_path / "b.bt"), str(tmp_path / "out.bt"), "--force",
+                      "-q", *guess])
+            assert (tmp_path / "out.bt").is_file()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(on_compile)
+    assert not compiles, f"{len(compiles)} programs compiled after the warm-up"
 
 
 def test_a_batch_worker_opens_the_kernel_store_its_parent_handed_over(tmp_path):
