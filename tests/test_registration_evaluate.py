@@ -52,6 +52,24 @@ def test_far_from_the_origin_and_no_inliers():
     assert int(m.num_inliers) == 0 and np.isnan(float(m.rmse)) and float(m.fitness) == 0.0
 
 
+def test_subsets_padded_as_the_whole_clouds_share_one_program():
+    """``source_capacity`` / ``target_capacity``: a subset of a pair's clouds padded to the whole
+    clouds' buckets gives its own statistics (brute force) from the whole clouds' program."""
+    from octomerge_jax.registration.evaluate import _evaluate
+
+    s, t, T = _clouds()
+    reg.evaluate_registration(s, t, T, 0.08)
+    programs = _evaluate.programs()
+    sub_s, sub_t = s[:700], t[:900]
+    st = reg.evaluate_registration(sub_s, sub_t, T, 0.08, source_capacity=s.shape[0], target_capacity=t.shape[0])
+    assert _evaluate.programs() == programs
+    n, rmse, fit = _brute(sub_s, sub_t, T, 0.08)
+    assert int(st.num_inliers) == n and float(st.rmse) == pytest.approx(rmse, rel=1e-5)
+    assert float(st.fitness) == pytest.approx(fit, rel=1e-6)
+    reg.evaluate_registration(sub_s, sub_t, T, 0.08)  # its own buckets: another program
+    assert _evaluate.programs() == programs + 1
+
+
 def test_jit_and_vmap_over_transforms_with_padding():
     s, t, T = _clouds()
     d = 0.08

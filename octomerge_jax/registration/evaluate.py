@@ -17,7 +17,7 @@ import numpy as np
 
 from . import neighbors
 from .. import se3
-from .._ops import to_device
+from .._ops import bucket_capacity, to_device
 from ..kernel_store import stored_jit
 from ._icp import pad_points_host
 
@@ -57,8 +57,18 @@ def _evaluate(source, source_count, target, target_count, T, distance, *, table_
                              grid_overflow=grid.overflow[0])
 
 
+def _capacity(points, at_least: int | None) -> int | None:
+    """The padded rows of host ``points``: ``None`` (their own bucket) or the bucket of ``at_least``
+    rows when that is larger."""
+    if at_least is None:
+        return None
+    return bucket_capacity(max(int(at_least), int(np.shape(points)[0]) if np.ndim(points) == 2 else 0))
+
+
 def evaluate_registration(source, target, T_target_source, max_correspondence_distance: float, *,
-                          source_count=None, target_count=None, cell_capacity: int = 8) -> RegistrationStats:
+                          source_count=None, target_count=None, cell_capacity: int = 8,
+                          source_capacity: int | None = None,
+                          target_capacity: int | None = None) -> RegistrationStats:
     """Correspondence statistics of ``source (Ns, 3)`` placed by ``T_target_source (4, 4)``
     against ``target (Nt, 3)`` [m]: the nearest target point of each source point counts when
     it lies within ``max_correspondence_distance`` [m] (exact unless ``grid_overflow > 0``).
@@ -67,7 +77,9 @@ def evaluate_registration(source, target, T_target_source, max_correspondence_di
     the argument), padded to ``bucket_capacity`` and evaluated about the target's centroid in
     float64 on the host before the float32 search (map coordinates can be kilometres from the
     origin); JAX arrays (e.g. under ``jit`` / ``vmap``) are used as given, with optional
-    ``*_count`` valid-row counts.
+    ``*_count`` valid-row counts. ``source_capacity`` / ``target_capacity`` (host inputs): pad
+    to the bucket of at least that many rows, so that subsets of one pair's clouds share the
+    whole clouds' compiled program.
     """
     d = float(max_correspondence_distance)
     if not (np.isfinite(d) and d > 0):
@@ -79,8 +91,8 @@ def evaluate_registration(source, target, T_target_source, max_correspondence_di
                    for x in (source, target, T_target_source, source_count, target_count))
     if host:
         T = se3.check_rigid(T_target_source, "T_target_source").astype(np.float64)
-        s, ns = pad_points_host(source, None, "source")
-        t, nt = pad_points_host(target, None, "target")
+        s, ns = pad_points_host(source, _capacity(source, source_capacity), "source")
+        t, nt = pad_points_host(target, _capacity(target, target_capacity), "target")
         src = np.asarray(source, np.float64).reshape(-1, 3)
         tgt = np.asarray(target, np.float64).reshape(-1, 3)
         ref = tgt.mean(0) if nt else np.zeros(3)
