@@ -146,6 +146,9 @@ class _State(NamedTuple):
     stall: jax.Array  # () int32, steps since the energy last reached a new low
     C1: jax.Array  # (n_targets, 3, 3) float32, map 1's covariances of the targets matched so far
     have: jax.Array  # (n_targets,) bool, the targets whose covariance ``C1`` holds
+    inliers: jax.Array  # () int32, at the returned transform (set by the last pass)
+    rmse: jax.Array  # () float32 [m], at the returned transform (set by the last pass)
+    done: jax.Array  # () bool, the last pass ran: ``T`` is the result
 
 
 @stored_jit(static_argnames=("offsets", "max_iterations"))
@@ -177,39 +180,51 @@ def _solve(m1, m2, grid, targets, samples, count, T0, centre, thresholds, mcd, *
                                  jnp.sum(need), thresholds[0], off)
         return s.C1.at[new].set(C, mode="drop"), s.have.at[new].set(True, mode="drop")
 
-    def body(s: _State) -> _State:
-        y, _, p, inlier, idx = matches(s.T)
-        C1_all, have = target_covariances(s, inlier, idx)
-        C1 = C1_all[jnp.maximum(idx, 0)]
-        R = s.T[:3, :3]
-        W = jnp.linalg.inv(C1 + jnp.einsum("ij,pjk,lk->pil", R, C2, R))
-        W = jnp.where(inlier[:, None, None], W, 0.0)
-        e = jnp.where(inlier[:, None], p - y, 0.0)
-        J = jnp.concatenate([se3.skew(y), -jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), y.shape + (3,))], -1)
-        energy = jnp.einsum("pa,pab,pb->", e, W, e) / jnp.maximum(jnp.sum(inlier), 1).astype(jnp.float32)
-        better = energy < s.best_energy * (1.0 - 1e-4)
-        H = jnp.einsum("pai,pab,pbj->ij", J, W, J)
-        g = jnp.einsum("pai,pab,pb->i", J, W, e)
-        dx = -jnp.linalg.solve(H + 1e-6 * jnp.trace(H) * jnp.eye(6, dtype=jnp.float32), g)
-        dT = se3.from_rotation_translation(se3.so3_exp(dx[:3]), dx[3:])
-        step = jnp.stack([jnp.linalg.norm(dx[:3]), jnp.linalg.norm(dx[3:])])
-        return _State(dT @ s.T, s.k + 1, jnp.where(jnp.all(jnp.isfinite(dx)), step, jnp.inf),
-                      jnp.where(better, s.T, s.best_T), jnp.where(better, energy, s.best_energy),
-                      jnp.where(better, 0, s.stall + 1), C1_all, have)
-
-    def cond(s: _State):
+    def running(s: _State):
         return ((s.k < max_iterations) & ~_settled(s.step, res) & jnp.all(jnp.isfinite(s.step))
                 & (s.stall < STALL_PATIENCE))
 
+    def body(s: _State) -> _State:
+        # one search per pass: a step from ``s.T`` while running, else the figures at the result (the
+        # last iterate when it settled, else the one of the lowest energy) and the end; a second
+        # search after the loop would compile the nearest-neighbour search twice
+        go = running(s)
+        T_at = jnp.where(go, s.T, jnp.where(_settled(s.step, res), s.T, s.best_T))
+        y, d2, p, inlier, idx = matches(T_at)
+
+        def step() -> _State:
+            C1_all, have = target_covariances(s, inlier, idx)
+            C1 = C1_all[jnp.maximum(idx, 0)]
+            R = s.T[:3, :3]
+            W = jnp.linalg.inv(C1 + jnp.einsum("ij,pjk,lk->pil", R, C2, R))
+            W = jnp.where(inlier[:, None, None], W, 0.0)
+            e = jnp.where(inlier[:, None], p - y, 0.0)
+            J = jnp.concatenate([se3.skew(y), -jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), y.shape + (3,))],
+                                -1)
+            energy = jnp.einsum("pa,pab,pb->", e, W, e) / jnp.maximum(jnp.sum(inlier), 1).astype(jnp.float32)
+            better = energy < s.best_energy * (1.0 - 1e-4)
+            H = jnp.einsum("pai,pab,pbj->ij", J, W, J)
+            g = jnp.einsum("pai,pab,pb->i", J, W, e)
+            dx = -jnp.linalg.solve(H + 1e-6 * jnp.trace(H) * jnp.eye(6, dtype=jnp.float32), g)
+            dT = se3.from_rotation_translation(se3.so3_exp(dx[:3]), dx[3:])
+            step = jnp.stack([jnp.linalg.norm(dx[:3]), jnp.linalg.norm(dx[3:])])
+            return s._replace(T=dT @ s.T, k=s.k + 1, step=jnp.where(jnp.all(jnp.isfinite(dx)), step, jnp.inf),
+                              best_T=jnp.where(better, s.T, s.best_T),
+                              best_energy=jnp.where(better, energy, s.best_energy),
+                              stall=jnp.where(better, 0, s.stall + 1), C1=C1_all, have=have)
+
+        def finish() -> _State:
+            n = jnp.sum(inlier).astype(jnp.int32)
+            rmse = jnp.sqrt(jnp.sum(jnp.where(inlier, d2, 0.0)) / jnp.maximum(n, 1).astype(jnp.float32))
+            return s._replace(T=T_at, inliers=n, rmse=rmse, done=jnp.bool_(True))
+
+        return jax.lax.cond(go, step, finish)
+
     start = _State(T0, jnp.int32(0), jnp.full((2,), 1e30, jnp.float32), T0, jnp.float32(jnp.inf), jnp.int32(0),
-                   jnp.zeros((n_targets, 3, 3), jnp.float32), jnp.zeros((n_targets,), bool))
-    s = jax.lax.while_loop(cond, body, start)
-    settled = _settled(s.step, res)
-    T = jnp.where(settled, s.T, s.best_T)
-    _, d2, _, inlier, _ = matches(T)
-    n = jnp.sum(inlier)
-    rmse = jnp.sqrt(jnp.sum(jnp.where(inlier, d2, 0.0)) / jnp.maximum(n, 1).astype(jnp.float32))
-    return T, s.k, settled | (s.stall >= STALL_PATIENCE), n, rmse
+                   jnp.zeros((n_targets, 3, 3), jnp.float32), jnp.zeros((n_targets,), bool), jnp.int32(0),
+                   jnp.float32(0.0), jnp.bool_(False))
+    s = jax.lax.while_loop(lambda s: ~s.done, body, start)
+    return s.T, s.k, _settled(s.step, res) | (s.stall >= STALL_PATIENCE), s.inliers, s.rmse
 
 
 def _near_box(points, other, T_1_2, pad: float, inverse: bool) -> np.ndarray:
