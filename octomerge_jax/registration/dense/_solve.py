@@ -132,18 +132,25 @@ def _skip_level(maxiter: int, T, i):
     return T, _LevelOutcome(nan, jnp.int32(0), jnp.bool_(True), jnp.float32(jnp.nan))
 
 
-def _level_step(problem: AlignProblem, opts: _Options, maxiter: int, solver: Solver, T0, start_loss, T, i):
-    """Scan step ``i``: levels ``0..L-1`` (the ones before ``start_level`` skipped), then one
-    more, the guard: a path that ends with a higher finest loss than the start's is dropped
-    and the finest level solved again from the start. Returns ``(T, (outcome, restart))``."""
+def _level_step(problem: AlignProblem, opts: _Options, maxiter: int, solver: Solver, T0, carry, i):
+    """Scan step ``i``: levels ``0..L-1`` (the ones before ``start_level`` skipped), then the
+    guard: a path that ends with a higher finest loss than the start's is dropped and the finest
+    level solved again from the start; then the end. The finest-level scores come from one place
+    in the program (``docs/design.md``), at the steps that need them: the start's at step 0, the
+    path's at the guard, the result's at the end. ``carry``: ``(T, start loss, scores)``.
+    Returns ``(carry, (outcome, restart))``."""
+    T, start_loss, _ = carry
     last = problem.num_levels - 1
-    guard = i > last
-    restart = jax.lax.cond(guard, lambda: (opts.start_level < last) & jnp.isfinite(start_loss)
-                           & ~(fine_scores(problem, T)[0] <= start_loss), lambda: jnp.bool_(False))
+    guard, end = i == last + 1, i == last + 2
+    nan = jnp.float32(jnp.nan)
+    at = jnp.where(i == 0, T0, T)
+    scores = jax.lax.cond((i == 0) | guard | end, lambda: fine_scores(problem, at), lambda: (nan, nan, nan))
+    start_loss = jnp.where(i == 0, scores[0], start_loss)
+    restart = guard & (opts.start_level < last) & jnp.isfinite(start_loss) & ~(scores[0] <= start_loss)
     solve = partial(_solve_level, problem, opts, maxiter, solver, active=~guard | restart)
-    T_out, outcome = jax.lax.cond(i < opts.start_level, partial(_skip_level, maxiter), solve,
+    T_out, outcome = jax.lax.cond((i < opts.start_level) | end, partial(_skip_level, maxiter), solve,
                                   jnp.where(restart, T0, T), jnp.minimum(i, last))
-    return jnp.where(guard & ~restart, T, T_out), (outcome, restart)
+    return (jnp.where((guard & ~restart) | end, T, T_out), start_loss, scores), (outcome, restart)
 
 
 def _status(loss, T, overlap, agree, converged, opts: _Options):
@@ -156,18 +163,19 @@ def _status(loss, T, overlap, agree, converged, opts: _Options):
 
 
 def _solve(problem: AlignProblem, T_init, opts: _Options, maxiter: int, solver: Solver) -> AlignResult:
-    """Coarse-to-fine minimisation (one compiled level step, scanned over the levels and the
-    guard step), then the finest-level scores and the status."""
+    """Coarse-to-fine minimisation (one compiled level step, scanned over the levels, the guard
+    step and the end, which scores the result at the finest level), then the status."""
     T0 = jnp.asarray(T_init, jnp.float32)
     last = problem.num_levels - 1
-    start_loss = fine_scores(problem, T0)[0]
-    step = partial(_level_step, problem, opts, maxiter, solver, T0, start_loss)
-    T, (rows, restarts) = jax.lax.scan(step, T0, jnp.arange(last + 2))
-    restart = restarts[-1]
-    num_iterations = jnp.sum(rows.iterations)
-    # the level rows; a restart's solve replaces the finest level's
-    rows = jax.tree_util.tree_map(lambda a: a[:-1].at[last].set(jnp.where(restart, a[-1], a[last])), rows)
-    loss, overlap, agree = fine_scores(problem, T)
+    nan = jnp.float32(jnp.nan)
+    step = partial(_level_step, problem, opts, maxiter, solver, T0)
+    (T, _, (loss, overlap, agree)), (rows, restarts) = jax.lax.scan(step, (T0, nan, (nan, nan, nan)),
+                                                                    jnp.arange(last + 3))
+    restart = restarts[last + 1]
+    num_iterations = jnp.sum(rows.iterations)  # the end's row is a skipped level: 0
+    # the level rows; a restart's solve (the guard's row) replaces the finest level's
+    rows = jax.tree_util.tree_map(lambda a: a[:last + 1].at[last].set(jnp.where(restart, a[last + 1], a[last])),
+                                  rows)
     status = _status(loss, T, overlap, agree, rows.converged[-1], opts)
     return AlignResult(T_1_2=T, loss=loss, loss_history=rows.history, iterations=rows.iterations,
                        num_iterations=num_iterations, overlap=overlap, agreement=agree,
