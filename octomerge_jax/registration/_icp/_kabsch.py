@@ -63,10 +63,30 @@ def implicit_step(T_hat, src, tgt_pts, w):
 
     ``T*`` satisfies ``g(T*; src, tgt) = 0``, the gradient of eq. 3.18 in a left perturbation
     about the inlier centroid ``c`` (``J_i = [I, -[p_i - c]x]``); so ``dT* = -H^{-1} dg`` with
-    ``H`` the 6x6 Gauss-Newton matrix. One stop-gradient Newton step ``T_hat + (Xi -
-    sg(Xi)) T_hat`` has that derivative and ``T_hat``'s value. ``dT*/dT_init = 0``."""
-    T_hat = jax.lax.stop_gradient(T_hat)
-    w = jax.lax.stop_gradient(w).astype(src.dtype)
+    ``H`` the 6x6 Gauss-Newton matrix: the derivative of one Newton step ``Xi(src, tgt) T_hat``
+    with ``H`` and ``c`` held fixed (``_newton_step``). The value is ``T_hat`` itself; the step
+    is traced only under differentiation (a ``custom_jvp``), so a forward run computes nothing
+    here. ``dT*/dT_init = 0``, and ``w`` has no derivative."""
+    return _fixed_point(jax.lax.stop_gradient(T_hat), src, tgt_pts,
+                        jax.lax.stop_gradient(w).astype(src.dtype))
+
+
+@jax.custom_jvp
+def _fixed_point(T_hat, src, tgt_pts, w):
+    return T_hat
+
+
+@_fixed_point.defjvp
+def _fixed_point_jvp(primals, tangents):
+    T_hat, src, tgt_pts, w = primals
+    _, d_src, d_tgt, _ = tangents
+    _, d_T = jax.jvp(lambda s, t: _newton_step(T_hat, s, t, w), (src, tgt_pts), (d_src, d_tgt))
+    return T_hat, d_T
+
+
+def _newton_step(T_hat, src, tgt_pts, w):
+    """``Xi T_hat (4, 4)``: the Gauss-Newton step of eq. 3.18 at ``T_hat`` (``implicit_step``),
+    ``H`` and the centroid ``c`` without derivative."""
     n = jnp.maximum(jnp.sum(w), 1.0)
     p = se3.transform_points(T_hat, src)
     c = jax.lax.stop_gradient(jnp.sum(w[:, None] * p, 0) / n)
@@ -86,4 +106,4 @@ def implicit_step(T_hat, src, tgt_pts, w):
     v, om = delta[:3], delta[3:]
     Om = se3.skew(om)
     Xi = jnp.zeros((4, 4), src.dtype).at[:3, :3].set(Om).at[:3, 3].set(v - Om @ c)
-    return T_hat + (Xi - jax.lax.stop_gradient(Xi)) @ T_hat
+    return Xi @ T_hat
