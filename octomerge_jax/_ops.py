@@ -105,17 +105,18 @@ _SCANS = {"add": (jax.lax.cumsum, jnp.add, 0),
           "min": (jax.lax.cummin, jnp.minimum, np.iinfo(np.int32).max)}
 
 
-def _scan(kind: str, x, reverse: bool = False, block: int = 4):
+def _scan(kind: str, x, reverse: bool = False, block: int = 4, levels: int = 2):
     """Inclusive scan of int32 ``x`` along axis 0 in blocks: ``lax.cum*`` inside blocks of
-    ``block`` rows, the block totals scanned recursively."""
+    ``block`` rows, the block totals scanned the same way for ``levels`` levels, then by one
+    ``lax.cum*`` (docs/design.md, "Blocked scans")."""
     if reverse:
-        return _scan(kind, x[::-1], block=block)[::-1]
+        return _scan(kind, x[::-1], block=block, levels=levels)[::-1]
     cum, op, ident = _SCANS[kind]
     n = x.shape[0]
-    if n <= block or n % block:
+    if levels == 0 or n <= block or n % block:
         return cum(x, axis=0)
     within = cum(x.reshape((n // block, block) + x.shape[1:]), axis=1)
-    total = _scan(kind, within[:, -1], block=block)
+    total = _scan(kind, within[:, -1], block=block, levels=levels - 1)
     carry = jnp.concatenate([jnp.full((1,) + x.shape[1:], ident, x.dtype), total[:-1]])
     return op(within, carry[:, None]).reshape(x.shape)
 
