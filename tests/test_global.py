@@ -236,6 +236,41 @@ def test_guess_free_mode_ends_with_the_dense_step(room):
     assert dense_after_global(m1, m2, clouds, far, MergeConfig(), Timings()) is far
 
 
+def test_candidates_refined_side_by_side_as_one_after_another(room, monkeypatch):
+    """The candidates' ICP runs in threads (``_refine_all``): the same results in the same order
+    as one after another, timed as one ``icp`` stage, each run in the caller's context (its
+    memory budget)."""
+    from octomerge_jax import budget
+    from octomerge_jax.pipeline import globalreg
+
+    T_true = transform_from_xyz_rpy(0.6, -0.4, 0.0, 0.0, 0.0, 2.4)
+    m1, m2 = _room_pair(room, T_true)
+    clouds = occupied_clouds(m1, m2, Timings())
+    p1, p2 = clouds.points_1, clouds.points_2
+    poses = np.stack([T_true @ transform_from_xyz_rpy(dx, 0.05, 0.0, 0.0, 0.0, dyaw)
+                      for dx, dyaw in ((0.1, 0.03), (-0.15, -0.05), (0.3, 0.4))])
+    picked = [2, 0, 1]
+    one_by_one = [globalreg._refine(p1, p2, poses[i], i, MergeConfig(), RES, None) for i in picked]
+    budgets = []
+    icp = reg.icp
+
+    def recording(*a, **k):
+        budgets.append(budget.current_budget())
+        return icp(*a, **k)
+
+    monkeypatch.setattr(globalreg.reg, "icp", recording)
+    monkeypatch.setattr(globalreg.os, "cpu_count", lambda: 2)
+    timings = Timings()
+    with budget.memory_budget("3 GiB"):
+        side_by_side = globalreg._refine_all(p1, p2, poses, picked, MergeConfig(), RES, timings)
+    assert [r.index for r in side_by_side] == picked
+    for a, b in zip(one_by_one, side_by_side):
+        np.testing.assert_array_equal(a.T_1_2, b.T_1_2)
+        assert int(a.result.num_iterations) == int(b.result.num_iterations)
+    assert list(timings) == ["icp"]
+    assert budgets == [3 << 30] * 3
+
+
 @pytest.mark.slow
 def test_no_common_region_is_no_overlap(room):
     occ, free = room
