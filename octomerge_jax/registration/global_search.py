@@ -224,8 +224,11 @@ def translation_candidates_of_grids(g1: CorrelationGrid, g2: CorrelationGrid, vo
         spec -= np.fft.rfftn(g1.free, shape, axes=(0, 1, 2)) * np.conj(f2)
     if g2.free is not None:
         spec -= f1 * np.conj(np.fft.rfftn(g2.free, shape, axes=(0, 1, 2)))
-    corr = np.fft.irfftn(spec, shape, axes=(0, 1, 2))
-    flat = np.argsort(-corr, axis=None)[: 64 * num_peaks]
+    corr = np.fft.irfftn(spec, shape, axes=(0, 1, 2)).ravel()
+    # the 64 num_peaks highest cells, highest first (ties: lower index first), without sorting them all
+    k = min(64 * num_peaks, corr.size)
+    top = np.argpartition(-corr, k - 1)[:k] if k < corr.size else np.arange(corr.size)
+    flat = top[np.lexsort((top, -corr[top]))]
     shifts, scores = [], []
     for f in flat:
         # shifts run over (-s2, s1): indices from s1 on are negative shifts, wrapped
@@ -233,7 +236,7 @@ def translation_candidates_of_grids(g1: CorrelationGrid, g2: CorrelationGrid, vo
         d = np.where(d >= s1, d - np.asarray(shape), d)
         if all(np.max(np.abs(d - e)) >= min_separation_cells for e in shifts):
             shifts.append(d)
-            scores.append(float(corr.flat[f]))
+            scores.append(float(corr[f]))
             if len(shifts) == num_peaks:
                 break
     d = np.asarray(shifts, np.int64).reshape(-1, 3)
