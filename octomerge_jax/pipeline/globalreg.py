@@ -355,13 +355,22 @@ def _refine_all(p1, p2, poses, picked: list[int], config: MergeConfig, resolutio
     kernels), so two at once finish a lab pair's candidates in 0.72-0.78 s instead of
     0.92-1.12 s on 2 cores, with the same results (``docs/design.md``, "Candidates refined
     side by side"). Timed as one stage ``icp``."""
-    workers = min(len(picked), os.cpu_count() or 1)
-    if workers <= 1:
+    if min(len(picked), os.cpu_count() or 1) <= 1:
         return [_refine(p1, p2, poses[i], int(i), config, resolution, timings) for i in picked]
-    with timings.stage("icp"), ThreadPoolExecutor(workers, thread_name_prefix="octomerge-icp") as pool:
-        # each task in a copy of this context (the memory budget, listeners)
-        futures = [pool.submit(contextvars.copy_context().run, _refine, p1, p2, poses[i], int(i), config, resolution,
-                               None) for i in picked]
+    with timings.stage("icp"):
+        return _side_by_side(lambda i: _refine(p1, p2, poses[i], int(i), config, resolution, None), picked)
+
+
+def _side_by_side(fn, items) -> list:
+    """``[fn(x) for x in items]``, up to one call per CPU core at once (threads; NumPy and JAX
+    release the interpreter while they compute), each in a copy of the caller's context (its
+    memory budget, listeners). A call's exception is raised here (the first in ``items`` order)."""
+    items = list(items)
+    workers = min(len(items), os.cpu_count() or 1)
+    if workers <= 1:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(workers, thread_name_prefix="octomerge-side-by-side") as pool:
+        futures = [pool.submit(contextvars.copy_context().run, fn, x) for x in items]
         return [f.result() for f in futures]
 
 
