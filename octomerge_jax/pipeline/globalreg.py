@@ -350,11 +350,10 @@ def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timin
 
 def _refine_all(p1, p2, poses, picked: list[int], config: MergeConfig, resolution: float,
                 timings: Timings) -> list[_Refined]:
-    """``_refine`` of the poses ``poses[i]`` for ``i`` in ``picked``, in that order, up to one
-    per CPU core at once: one ICP leaves part of a CPU idle (its loop is a chain of small
-    kernels), so two at once finish a lab pair's candidates in 0.72-0.78 s instead of
-    0.92-1.12 s on 2 cores, with the same results (``docs/design.md``, "Candidates refined
-    side by side"). Timed as one stage ``icp``."""
+    """``_refine`` of the poses ``poses[i]`` (``(k, 4, 4)``) for ``i`` in ``picked``, in that
+    order, up to one per CPU core at once (``_side_by_side``): one ICP leaves part of a CPU
+    idle, its loop being a chain of small kernels; the results are those of one after another
+    (``docs/design.md``, "Candidates refined side by side"). Timed as one stage ``icp``."""
     if min(len(picked), os.cpu_count() or 1) <= 1:
         return [_refine(p1, p2, poses[i], int(i), config, resolution, timings) for i in picked]
     with timings.stage("icp"):
