@@ -167,6 +167,43 @@ def test_nudge_moves_a_pose_a_third_of_a_cell_off_back(room):
     assert scores[1] < scores[0]
 
 
+def test_nudges_scored_together_as_one_at_a_time(room):
+    """``nudge_poses`` scores a pose's six moves together (``_nets_at``): the same poses and
+    net agreements to the bit as scoring each move alone with ``net_agreement``, rotated
+    poses included."""
+    from octomerge_jax.registration.global_search import net_agreement, rotation_z
+
+    occ, free = room
+    v = 0.25
+    s1 = cell_sets(occ, free, v)
+    moved = (occ - np.array([0.3, -0.2, 0.0])) @ rotation_z(0.4)  # map 2: the room turned and shifted
+    s2 = cell_sets(moved, free, v)
+    assert s1.table is not None and s2.table is not None
+
+    def one_at_a_time(T, step=v / 2, w=3.0):
+        best = net_agreement(s1, s2, T, w)
+        for _ in range(3):
+            tried = []
+            for k in range(3):
+                for sign in (-1.0, 1.0):
+                    T2 = T.copy()
+                    T2[:3, 3] += sign * step * np.eye(3)[k]
+                    tried.append((net_agreement(s1, s2, T2, w), T2))
+            score, T2 = max(tried, key=lambda x: x[0])
+            if score <= best:
+                break
+            best, T = score, T2
+        return T, best
+
+    poses = np.stack([transform_from_xyz_rpy(x, y, 0.02, 0.01, -0.02, yaw)
+                      for x, y, yaw in ((0.3, -0.2, 0.4), (0.41, -0.12, 0.43), (-1.0, 2.0, 2.5), (0.0, 0.0, 0.0))])
+    got, scores = nudge_poses(s1, s2, poses, v / 2, 3.0)
+    for T, g, sc in zip(poses, got, scores):
+        want, best = one_at_a_time(np.array(T, np.float64))
+        np.testing.assert_array_equal(g, want)
+        assert sc == best
+
+
 def test_yaw_and_level_from_normals():
     rng = np.random.default_rng(1)
     # a tilted box room: walls at yaw 0.3, floor tilted by 0.05 rad
