@@ -405,15 +405,21 @@ def _nets_at(s1: CellSets, s2: CellSets, poses, conflict_weight: float) -> np.nd
     same = np.all(Ts[:, :3, :3] == Ts[:1, :3, :3]) and np.all(T_invs[:, :3, :3] == T_invs[:1, :3, :3])
     if s1.table is None or s2.table is None or not same:
         return np.array([net_agreement(s1, s2, T, conflict_weight) for T in Ts], np.float64)
-    in_1 = _label_counts(s1.table, _placed_keys_at(s2, s1, Ts), Ts.shape[0])
-    in_2 = _label_counts(s2.table, _placed_keys_at(s1, s2, T_invs), Ts.shape[0])
-    agree, conflict = in_1[:, OCCUPIED], in_1[:, FREE] + in_2[:, FREE]
+    agree, conflict = _table_scores(s1, s2, Ts, T_invs)
     return np.array([float(int(a) - conflict_weight * int(c)) for a, c in zip(agree, conflict)], np.float64)
 
 
+def _table_scores(s1: CellSets, s2: CellSets, Ts, T_invs) -> tuple[np.ndarray, np.ndarray]:
+    """``consistency_score`` from both maps' cell tables at each of ``Ts (k, 4, 4)`` (one
+    rotation; ``T_invs`` their inverses): ``(agree (k,), conflict (k,))`` int64."""
+    in_1 = _label_counts(s1.table, _placed_keys_at(s2, s1, Ts), Ts.shape[0])
+    in_2 = _label_counts(s2.table, _placed_keys_at(s1, s2, T_invs), Ts.shape[0])
+    return in_1[:, OCCUPIED], in_1[:, FREE] + in_2[:, FREE]
+
+
 def _placed_keys_at(source: CellSets, target: CellSets, Ts) -> np.ndarray:
-    """``_placed_keys`` under each of ``Ts (k, 4, 4)`` (one rotation): ``(3, k m)`` int64, pose
-    after pose."""
+    """``_placed_keys`` under each of ``Ts (k, 4, 4)`` that share ``Ts[0]``'s rotation: ``(3, k
+    m)`` int64, pose after pose (its centres rotated once)."""
     centres = source.centres if source.centres is not None else (source.occupied.points + source.origin).T
     q = np.repeat((Ts[0, :3, :3] @ centres)[None], Ts.shape[0], axis=0)
     q += (Ts[:, :3, 3] - target.origin)[:, :, None]
@@ -449,9 +455,8 @@ def consistency_score(s1: CellSets, s2: CellSets, T_1_2) -> tuple[int, int]:
     T = np.asarray(T_1_2, np.float64)
     T_inv = np.linalg.inv(T)
     if s1.table is not None and s2.table is not None:
-        in_1 = np.bincount(_labels_at(s1.table, _placed_keys(s2, s1, T)), minlength=3)
-        in_2 = np.bincount(_labels_at(s2.table, _placed_keys(s1, s2, T_inv)), minlength=3)
-        return int(in_1[OCCUPIED]), int(in_1[FREE]) + int(in_2[FREE])
+        agree, conflict = _table_scores(s1, s2, T[None], T_inv[None])
+        return int(agree[0]), int(conflict[0])
     c = _placed_codes(s2, s1, T)
     agree = int(_member(s1.occupied.codes, c).sum())
     conflict = int(_member(s1.free_codes, c).sum())
@@ -462,12 +467,7 @@ def consistency_score(s1: CellSets, s2: CellSets, T_1_2) -> tuple[int, int]:
 def _placed_keys(source: CellSets, target: CellSets, T_target_source) -> np.ndarray:
     """``(3, m)`` int64 keys (one row per axis) of the cells of ``target``'s grid that
     ``source``'s occupied cells (their centroids) land in under ``T_target_source (4, 4)``."""
-    T = T_target_source
-    centres = source.centres if source.centres is not None else (source.occupied.points + source.origin).T
-    q = T[:3, :3] @ centres
-    q += (T[:3, 3] - target.origin)[:, None]
-    q /= target.occupied.voxel
-    return np.floor(q, out=q).astype(np.int64)
+    return _placed_keys_at(source, target, np.asarray(T_target_source)[None])
 
 
 def _placed_codes(source: CellSets, target: CellSets, T_target_source) -> np.ndarray:
