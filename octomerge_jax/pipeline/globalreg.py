@@ -354,8 +354,6 @@ def _refine_all(p1, p2, poses, picked: list[int], config: MergeConfig, resolutio
     order, up to one per CPU core at once (``_side_by_side``): one ICP leaves part of a CPU
     idle, its loop being a chain of small kernels; the results are those of one after another
     (``docs/design.md``, "Candidates refined side by side"). Timed as one stage ``icp``."""
-    if min(len(picked), os.cpu_count() or 1) <= 1:
-        return [_refine(p1, p2, poses[i], int(i), config, resolution, timings) for i in picked]
     with timings.stage("icp"):
         return _side_by_side(lambda i: _refine(p1, p2, poses[i], int(i), config, resolution, None), picked)
 
