@@ -28,6 +28,9 @@ __all__ = [
     "cumsum",
     "cummax",
     "cummin",
+    "any_of",
+    "all_of",
+    "count_true",
     "padding_rows",
     "float_bits",
     "quarter_octave_capacity",
@@ -121,9 +124,32 @@ def _scan(kind: str, x, reverse: bool = False, block: int = 4, levels: int = 2):
     return op(within, carry[:, None]).reshape(x.shape)
 
 
+def _cumsum_by_products(x, block: int = 16):
+    """Inclusive prefix sum of int32 ``x (n, ...)`` along axis 0 as integer matrix products:
+    each block of ``block`` rows times an upper-triangular matrix of ones, the block totals
+    the same way, then each block's carry added (docs/design.md, "Blocked scans")."""
+    n = x.shape[0]
+    if n % block:
+        return jax.lax.cumsum(x, axis=0)
+    if n == block:
+        tri = jnp.triu(jnp.ones((n, n), x.dtype))
+        return jnp.tensordot(tri, x, axes=((0,), (0,)), preferred_element_type=x.dtype)
+    rows = x.reshape((n // block, block) + x.shape[1:])
+    tri = jnp.triu(jnp.ones((block, block), x.dtype))
+    within = jnp.moveaxis(jnp.tensordot(rows, tri, axes=((1,), (0,)), preferred_element_type=x.dtype), -1, 1)
+    total = _cumsum_by_products(within[:, -1], block)
+    carry = jnp.concatenate([jnp.zeros((1,) + x.shape[1:], x.dtype), total[:-1]])
+    return (within + carry[:, None]).reshape(x.shape)
+
+
 def cumsum(x, reverse: bool = False):
-    """Inclusive prefix sum of int32 ``x (n, ...)`` along axis 0 (blocked scan)."""
-    return _scan("add", x, reverse)
+    """Inclusive prefix sum of int32 ``x (n, ...)`` along axis 0: on the CPU as blocked
+    integer matrix products (half the compile time of a blocked ``lax.cumsum``), elsewhere
+    the blocked scan."""
+    if reverse:
+        return cumsum(x[::-1])[::-1]
+    x = jnp.asarray(x)
+    return jax.lax.platform_dependent(x, cpu=_cumsum_by_products, default=lambda v: _scan("add", v))
 
 
 def cummax(x, reverse: bool = False):
@@ -134,6 +160,32 @@ def cummax(x, reverse: bool = False):
 def cummin(x, reverse: bool = False):
     """Inclusive running minimum of int32 ``x (n, ...)`` along axis 0 (blocked scan)."""
     return _scan("min", x, reverse)
+
+
+def any_of(x):
+    """Whether any element of bool ``x`` (any shape) is true: a scalar bool, ``False`` when
+    ``x`` is empty. Reduced as bytes, not as ``jnp.any``: XLA:CPU compiles a boolean
+    reduction of a large array ten times slower
+    (docs/design.md, "Reductions XLA:CPU compiles fast")."""
+    return jnp.max(jnp.asarray(x).astype(jnp.uint8), initial=0) > 0
+
+
+def all_of(x):
+    """Whether every element of bool ``x`` (any shape) is true: a scalar bool, ``True`` when
+    ``x`` is empty (``jnp.all`` as bytes, as ``any_of``)."""
+    return jnp.min(jnp.asarray(x).astype(jnp.uint8), initial=1) > 0
+
+
+def count_true(x):
+    """How many elements of bool ``x`` (any shape) are true, as an int32 scalar. Summed in
+    float32 when ``x`` has fewer than 2^24 elements (every partial sum an integer below 2^24, so
+    exact in any order): XLA:CPU compiles an integer sum of a large array as a tree of
+    reduce-window kernels, several times slower to compile than a float sum
+    (docs/design.md, "Reductions XLA:CPU compiles fast")."""
+    x = jnp.asarray(x)
+    if x.size < 1 << 24:
+        return jnp.sum(x, dtype=jnp.float32).astype(jnp.int32)
+    return jnp.sum(x, dtype=jnp.int32)
 
 
 def padding_rows(capacity: int):

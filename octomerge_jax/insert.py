@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import morton
-from ._ops import bucket_capacity, quarter_octave_capacity, to_device
+from ._ops import any_of, bucket_capacity, quarter_octave_capacity, to_device
 from .budget import check_allocation
 from .kernel_store import stored_jit
 from .map import OccupancyMap
@@ -228,7 +228,7 @@ def _trace(points, valid, origin, max_range, brick_min, brick_dims, n_bricks, ma
 
     def cond(carry):
         i, (_, _, _, active, _) = carry
-        return (i < max_steps) & jnp.any(active)
+        return (i < max_steps) & any_of(active)
 
     init = (grid, jnp.broadcast_to(key_o, key_e.shape), t_max, ray_ok, bad0)
     _, (grid, _, _, active, bad) = jax.lax.while_loop(

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import morton
-from ._ops import bucket_capacity, cummax, cummin, cumsum, materialize, padding_rows, shift_down, shift_up
+from ._ops import all_of, bucket_capacity, cummax, cummin, cumsum, materialize, padding_rows, shift_down, shift_up
 from ._sort import lexsort_rows
 from .budget import check_allocation
 from .kernel_store import stored_jit
@@ -159,7 +159,7 @@ def _expand(m: OccupancyMap, depth: int, capacity: int) -> OccupancyMap:
     valid = m.valid_mask()
     target = jnp.maximum(m.depth, depth)
     n_children = jnp.where(valid, jnp.left_shift(1, 3 * (target - m.depth)), 0)
-    ends = jnp.cumsum(n_children)
+    ends = cumsum(n_children.astype(jnp.int32))
     o = jnp.arange(capacity, dtype=jnp.int32)
     src = jnp.clip(jnp.searchsorted(ends, o, side="right"), 0, m.capacity - 1).astype(jnp.int32)
     k = o - (ends[src] - n_children[src])
@@ -249,7 +249,7 @@ def _fold_updates(seg_start, valid, deltas, base, known, lo, hi):
     row of a group) to its start value ``base``; the result is valid at each group's first row."""
     n = deltas.shape[0]
     idx = jnp.arange(n, dtype=jnp.int32)
-    seg_id = jnp.cumsum(seg_start) - 1
+    seg_id = cumsum(seg_start.astype(jnp.int32)) - 1
     mult = jax.ops.segment_sum(valid.astype(jnp.int32), seg_id, num_segments=n)[seg_id]
 
     def body(k, v):
@@ -275,7 +275,7 @@ def _plan_updates(m: OccupancyMap, words, valid):
     n = words.shape[0]
     code = jnp.where(valid[:, None], words, jnp.array([morton.SENTINEL_HI, 0], jnp.int32))
     order = jnp.arange(n, dtype=jnp.int32)
-    presorted = jnp.all(~morton.words_less(code[1:], code[:-1]))
+    presorted = all_of(~morton.words_less(code[1:], code[:-1]))
 
     def sort_rows():
         o = lexsort_rows(((code[:, 0], morton.WORD_BITS + 1), (code[:, 1], morton.WORD_BITS)))
@@ -324,7 +324,7 @@ def _plan_splits(p, split_capacity: int):
         anc_child = morton.truncate_words(code, l)
         fp = ~morton.words_equal(anc_parent, shift_down(anc_parent, 1, -1))
         fc = ~morton.words_equal(anc_child, shift_down(anc_child, 1, -1))
-        run = jnp.cumsum(fp) - 1
+        run = cumsum(fp.astype(jnp.int32)) - 1
         bits = jnp.where(fc, jnp.left_shift(1, morton.child_index_words(code, l)), 0)
         return fp, jax.ops.segment_sum(bits, run, num_segments=n)[run]
 
@@ -347,7 +347,7 @@ def _apply_updates(m: OccupancyMap, p, s, deltas, fill_capacity: int, capacity: 
     voxel_keep = p["seg_start"] & p["valid"]
 
     # Fillers: the absent children of each path node, valued as the coarse leaf they split.
-    ends = jnp.cumsum(s["n_fill"])
+    ends = cumsum(s["n_fill"].astype(jnp.int32))
     o = jnp.arange(fill_capacity, dtype=jnp.int32)
     e = jnp.clip(jnp.searchsorted(ends, o, side="right"), 0, s["n_fill"].shape[0] - 1).astype(jnp.int32)
     k = o - (ends[e] - s["n_fill"][e])

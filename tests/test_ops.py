@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from octomerge_jax._ops import cond_with_shapes, cummax, cumsum, materialize
+from octomerge_jax._ops import all_of, any_of, cond_with_shapes, count_true, cummax, cumsum, materialize
 
 
 def test_materialize_returns_the_value_and_traces_it_once():
@@ -44,3 +44,43 @@ def test_blocked_scans_match_numpy():
         np.testing.assert_array_equal(cumsum(jnp.asarray(x)), np.cumsum(x))
         np.testing.assert_array_equal(cumsum(jnp.asarray(x), reverse=True), np.cumsum(x[::-1])[::-1])
         np.testing.assert_array_equal(cummax(jnp.asarray(x)), np.maximum.accumulate(x))
+
+
+def test_cumsum_by_products_is_exact_on_rows_overflow_and_vmap():
+    rng = np.random.default_rng(1)
+    for shape in ((16,), (17,), (48, 3), (4096, 4), (1 << 16,), (1 << 20,)):
+        x = rng.integers(-1000, 1000, shape).astype(np.int32)
+        got = np.asarray(jax.jit(cumsum)(x))
+        assert got.dtype == np.int32
+        np.testing.assert_array_equal(got, np.cumsum(x, axis=0))
+    x = np.full(4096, 2**30, np.int32)  # wraps as int32 arithmetic does
+    np.testing.assert_array_equal(cumsum(x), np.cumsum(x, dtype=np.int32))
+    rows = rng.integers(0, 9, (3, 256)).astype(np.int32)
+    np.testing.assert_array_equal(jax.vmap(cumsum)(rows), np.cumsum(rows, axis=1))
+
+
+def test_count_true_matches_numpy():
+    rng = np.random.default_rng(2)
+    for shape in ((0,), (7,), (1 << 20,), (300, 3)):
+        x = rng.random(shape) < 0.3
+        got = jax.jit(count_true)(x)
+        assert got.dtype == jnp.int32 and int(got) == int(x.sum())
+    assert int(count_true(np.ones(1 << 22, bool))) == 1 << 22
+
+
+def test_any_of_and_all_of_match_jnp_any_and_all():
+    rng = np.random.default_rng(3)
+    cases = [np.zeros((0,), bool), np.zeros((5,), bool), np.ones((7,), bool), np.zeros((2, 0, 3), bool)]
+    for n in (1, 31, 1000, 1 << 16):
+        for p in (0.0, 1e-4, 0.5, 1.0):
+            cases.append(rng.random(n) < p)
+    cases.append(rng.random((64, 8, 8)) < 0.999)
+    for x in cases:
+        assert bool(jax.jit(any_of)(x)) == bool(np.any(x)), (x.shape, x.sum())
+        assert bool(jax.jit(all_of)(x)) == bool(np.all(x)), (x.shape, x.sum())
+        assert jax.jit(any_of)(x).dtype == bool and jax.jit(any_of)(x).shape == ()
+    # a single true (false) row anywhere is seen
+    for i in (0, 12345, (1 << 16) - 1):
+        x = np.zeros(1 << 16, bool)
+        x[i] = True
+        assert bool(any_of(x)) and not bool(all_of(x)) and bool(any_of(~x)) and not bool(all_of(~x))

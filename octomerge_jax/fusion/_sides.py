@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from .. import morton
-from .._ops import cumsum, materialize
+from .._ops import any_of, count_true, cumsum, materialize
 from ..map import OccupancyMap
 from ._gaps import gap_cell_count
 from ._layout import excl_at
@@ -133,9 +133,9 @@ def _side(first: bool, A: OccupancyMap, B: OccupancyMap, le_b, mode, w_a, w_b, c
     gap_before = jnp.where((prev & 1) == 1, (prev & 2) == 0, (bh != ah) | (bl != al))
     gap_after = ((nxt & 4) == 0) & ((beh != aeh) | (bel != ael))  # A's last leaf in B's
     has_gap = inside_b & (gap_before | gap_after)
-    stats = SideStats(equal=jnp.sum(equal & first), split=jnp.sum(split),
-                      both=jnp.sum(self_emit & cov), new_self=jnp.sum(self_emit & ~cov))
-    return Side(valid, self_emit, self_val, le_b, has_gap, jnp.any(has_gap), stats)
+    stats = SideStats(equal=count_true(equal & first), split=count_true(split),
+                      both=count_true(self_emit & cov), new_self=count_true(self_emit & ~cov))
+    return Side(valid, self_emit, self_val, le_b, has_gap, any_of(has_gap), stats)
 
 
 def _gaps_at(pair: Pair, k: int, i) -> LeafGaps:

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._ops import to_device
+from .._ops import any_of, count_true, cumsum, to_device
 from .._sort import lexsort_rows
 
 __all__ = ["HashGrid", "build_grid", "build_grids", "nearest", "nearest_with_points", "any_within", "grid_table_size",
@@ -144,8 +144,9 @@ def _build_level(points, count, cell_size, table_size, bits: int, cell_capacity:
     big = jnp.iinfo(jnp.int32).max
     origin = jnp.min(jnp.where(valid[:, None], cells, big), axis=0)
     top = jnp.max(jnp.where(valid[:, None], cells, -big), axis=0)
-    origin = jnp.where(jnp.any(valid), origin, 0)
-    dims = jnp.where(jnp.any(valid), top - origin + 1, 1)
+    some = any_of(valid)
+    origin = jnp.where(some, origin, 0)
+    dims = jnp.where(some, top - origin + 1, 1)
     table_size = jnp.asarray(table_size, jnp.int32)
     dense = jnp.prod(dims.astype(jnp.float32)) <= table_size.astype(jnp.float32)
     mask = table_size - 1
@@ -161,7 +162,7 @@ def _build_level(points, count, cell_size, table_size, bits: int, cell_capacity:
         sbo, sc = bucket_octant[order], cell_id[order]
         sb = jnp.right_shift(sbo, 3)
         seg_start = jnp.concatenate([jnp.ones((1,), bool), (sbo[1:] != sbo[:-1]) | (sc[1:] != sc[:-1])])
-        seg = jnp.cumsum(seg_start.astype(jnp.int32)) - 1
+        seg = cumsum(seg_start.astype(jnp.int32)) - 1
         sums = jax.ops.segment_sum(safe[order], seg, num_segments=n)
         cnt = jax.ops.segment_sum(jnp.ones((n,), jnp.float32), seg, num_segments=n)
         value = (sums / jnp.maximum(cnt, 1.0)[:, None])[seg]
@@ -184,7 +185,7 @@ def _build_level(points, count, cell_size, table_size, bits: int, cell_capacity:
         rank = rows - jax.lax.cummax(jnp.where(is_start, rows, 0), axis=0)
         entry = jnp.ones((n,), bool)
     keep = entry & (sb < table_size) & (rank < cell_capacity)
-    overflow = jnp.sum(entry & (sb < table_size) & (rank >= cell_capacity)).astype(jnp.int32)
+    overflow = count_true(entry & (sb < table_size) & (rank >= cell_capacity))
     # the slots to fill: (bucket, rank) of the kept entries, -1 for the others (dropped by the scatter)
     return jnp.where(keep, sb, -1), jnp.where(keep, rank, 0), value, order, overflow, origin, dims, dense
 
@@ -412,7 +413,7 @@ def nearest_with_points(grid: HashGrid, queries, level=0, count=None, two_phase:
     near = lambda qb: _near_block(grid.xyz, grid.index, base, mask, origin, dims, dense, h, qb)  # noqa: E731
     d2, idx, match, sure = _blocked(near, q, count, _FILL + ((True, (), jnp.bool_),))
     redo = ~sure if count is None else ~sure & (jnp.arange(n) < count)
-    n_redo = jnp.sum(redo).astype(jnp.int32)
+    n_redo = count_true(redo)
     rows = jnp.nonzero(redo, size=n, fill_value=n)[0]
     d2r, idxr, matchr = _blocked(full, q.at[rows].get(mode="fill", fill_value=_FAR), n_redo, _FILL, _REDO_CHUNK)
     put = lambda a, v: a.at[rows].set(v, mode="drop")  # noqa: E731

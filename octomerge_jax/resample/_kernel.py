@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import morton
-from .._ops import quarter_octave_capacity, to_device
+from .._ops import count_true, cumsum, quarter_octave_capacity, to_device
 from ..budget import check_allocation
 from ..kernel_store import stored_jit
 from ..map import OccupancyMap
@@ -80,7 +80,7 @@ def _neighbour_keys(inp: KernelInputs, bkeys, wb, bvalid):
             in_range = (k >= 0) & (k < KEY_MAX)
             outside = (q < 0) | (q > 2)
             bad = ~in_range | outside
-            misses += jnp.sum(outside & in_range & bvalid[:, None], dtype=jnp.int32)
+            misses += count_true(outside & in_range & bvalid[:, None])
             packed.append((jnp.clip(q, 0, 2) * 3 ** i << 16) | (bad.astype(jnp.int32) << 13)
                           | (_spread3bits(k & 7) << i))
     return f, packed, misses
@@ -209,9 +209,9 @@ def transform_kernel(inp: KernelInputs, bufs, offset, start, *, chunk):
         vcode = jnp.stack([jnp.broadcast_to(bwords[:, None, 0], (chunk, BRICK_VOXELS)),
                            bwords[:, None, 1] | local], -1)
         emit = emit.reshape(-1)
-        n_emit = jnp.sum(emit, dtype=jnp.int32)
+        n_emit = count_true(emit)
         # Append the emitted leaves in order: one scatter per array (past capacity: dropped).
-        pos = jnp.where(emit, offset + jnp.cumsum(emit, dtype=jnp.int32) - 1, cap)
+        pos = jnp.where(emit, offset + cumsum(emit.astype(jnp.int32)) - 1, cap)
         out_code = out_code.at[pos].set(vcode.reshape(-1, 2), mode="drop")
         out_depth = out_depth.at[pos].set(depth.reshape(-1), mode="drop")
         out_lo = out_lo.at[pos].set(lo.reshape(-1), mode="drop")

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import morton
-from .._ops import bucket_capacity
+from .._ops import bucket_capacity, count_true, cumsum
 from ..budget import check_allocation
 from ..map import OccupancyMap, from_words
 from ._bricks import BRICK_DEPTH
@@ -71,14 +71,14 @@ def _apply_brick_merges(code, depth, log_odds, count, drop, head, head_depth, *,
     cap = code.shape[0]
     step = min(step, cap & -cap)  # capacities are q 2^k
     depth = depth.at[head].set(head_depth, mode="drop")
-    n_drop = jnp.sum(drop < cap, dtype=jnp.int32)
+    n_drop = count_true(drop < cap)
     fills = (jnp.array([morton.SENTINEL_HI, 0], jnp.int32), jnp.int32(_D), jnp.float32(0))
 
     def body(k, bufs):
         start = k * step
         local = jnp.where(drop >= start, drop - start, step)  # no negative (wrapping) index
         keep = jnp.ones(step, bool).at[local].set(False, mode="drop")
-        pos = jnp.where(keep, jnp.cumsum(keep) - 1, step)
+        pos = jnp.where(keep, cumsum(keep.astype(jnp.int32)) - 1, step)
         dst = start - jnp.searchsorted(drop, start).astype(jnp.int32)
         out = []
         for buf, fill in zip(bufs, fills):

@@ -15,6 +15,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ..._ops import cumsum
 from .. import neighbors
 from ...types import COARSE_MATCHING_CHOICES as COARSE_MATCHING
 
@@ -52,7 +53,7 @@ def voxel_downsample(points, valid, cell):
     cx, cy, cz, order = jax.lax.sort((c[:, 0], c[:, 1], c[:, 2], rows), num_keys=3)
     start = jnp.concatenate([jnp.ones((1,), bool),
                              (cx[1:] != cx[:-1]) | (cy[1:] != cy[:-1]) | (cz[1:] != cz[:-1])])
-    seg = jnp.cumsum(start.astype(jnp.int32)) - 1
+    seg = cumsum(start.astype(jnp.int32)) - 1
     v = valid[order]
     sums = jax.ops.segment_sum(jnp.where(v[:, None], points[order], 0.0), seg, num_segments=n)
     counts = jax.ops.segment_sum(v.astype(jnp.float32), seg, num_segments=n)

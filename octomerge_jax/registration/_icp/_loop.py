@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 
 from ... import se3
+from ..._ops import count_true
 from .. import neighbors
 from ..status import Status
 from ._anderson import History, accelerate, empty_history, restarted
@@ -213,7 +214,7 @@ def _iteration(problem: Problem, loop: Loop, s: LoopState, found=None) -> LoopSt
     # safeguard (Zhang et al. 2021): an accelerated iterate that does not lower the energy is
     # replaced by the plain step it extrapolated from
     reject = s.accelerated & ~(energy < s.energy_prev)
-    enough = jnp.sum(m.inlier) >= problem.min_inliers
+    enough = count_true(m.inlier) >= problem.min_inliers
     G = jnp.where(enough, kabsch(queries.points, jnp.where(m.inlier[:, None], m.point, 0.0),
                                  jnp.where(m.inlier, queries.weights, 0.0)), p.T)
     stall, energy_best, finish, advance = _stop_rules(problem, s, energy, jnp.sum(jnp.abs(G - p.T)),
@@ -389,7 +390,7 @@ def _report(problem: Problem, source, source_count, target, clouds: QueryClouds,
         # stopped on a coarse stage (max_iterations): its correspondences name centroids of a
         # coarser query cloud; the derivative below takes the source points' nearest points
         m = Matches(*(jnp.where(p.stage == last, a, b) for a, b in zip(m, m_fin)))
-    n_in = jnp.sum(m_fin.inlier).astype(jnp.int32)
+    n_in = count_true(m_fin.inlier)
     rmse = jnp.sqrt(jnp.sum(jnp.where(m_fin.inlier, d2, 0.0)) / jnp.maximum(n_in, 1).astype(jnp.float32))
     n_valid = jnp.maximum(source_count, 1).astype(jnp.float32)
     d_floor2 = problem.dists[last] * problem.dists[last]
@@ -406,7 +407,7 @@ def _report(problem: Problem, source, source_count, target, clouds: QueryClouds,
         num_inliers=n_in,
         rmse=rmse,
         fitness=n_in.astype(jnp.float32) / n_valid,
-        num_close=jnp.sum(m_fin.inlier & (d2 <= d_floor2 / 16.0)).astype(jnp.int32),
+        num_close=count_true(m_fin.inlier & (d2 <= d_floor2 / 16.0)),
         correspondence_distance=problem.dists[p.stage],
         status=status,
         grid_overflow=problem.grids.overflow[p.stage],
