@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import morton
-from ._ops import any_of, bucket_capacity, quarter_octave_capacity, to_device
+from ._ops import any_of, bucket_capacity, nonzero_rows, quarter_octave_capacity, to_device
 from .budget import check_allocation
 from .kernel_store import stored_jit
 from .map import OccupancyMap
@@ -248,9 +248,9 @@ def _extract(grid, brick_words, *, capacity: int, brick_capacity: int) -> ScanUp
     """Marked cells -> Morton words (already sorted: bricks by rank, cells by local Morton)."""
     cap_b = brick_words.shape[0]
     cells = grid.reshape(cap_b, _BRICK_CELLS)
-    (bricks,) = jnp.nonzero(jnp.any(cells > 0, axis=1), size=brick_capacity, fill_value=cap_b)
+    bricks = nonzero_rows(jnp.max(cells, axis=1) > 0, brick_capacity, cap_b)
     sub = jnp.take(cells, bricks, axis=0, mode="fill", fill_value=0)  # (brick_capacity, 512)
-    (idx,) = jnp.nonzero(sub.reshape(-1) > 0, size=capacity, fill_value=-1)
+    idx = nonzero_rows(sub.reshape(-1) > 0, capacity, -1)
     ok = idx >= 0
     safe = jnp.maximum(idx, 0)
     slot, local = safe // _BRICK_CELLS, safe % _BRICK_CELLS

@@ -6,7 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from octomerge_jax._ops import all_of, any_of, cond_with_shapes, count_true, cummax, cumsum, materialize
+from octomerge_jax._ops import (all_of, any_of, cond_with_shapes, count_true, cummax, cumsum, materialize,
+                                nonzero_rows)
 
 
 def test_materialize_returns_the_value_and_traces_it_once():
@@ -84,3 +85,14 @@ def test_any_of_and_all_of_match_jnp_any_and_all():
         x = np.zeros(1 << 16, bool)
         x[i] = True
         assert bool(any_of(x)) and not bool(all_of(x)) and bool(any_of(~x)) and not bool(all_of(~x))
+
+
+def test_nonzero_rows_matches_jnp_nonzero_with_size():
+    rng = np.random.default_rng(4)
+    for n, p in ((1, 1.0), (100, 0.0), (100, 0.3), (4096, 0.9), (1 << 16, 0.01)):
+        mask = rng.random(n) < p
+        for size, fill in ((n, n), (max(n // 3, 1), -1), (2 * n, 7)):
+            got = jax.jit(nonzero_rows, static_argnums=(1, 2))(mask, size, fill)
+            want = jnp.nonzero(mask, size=size, fill_value=fill)[0]
+            assert got.dtype == jnp.int32 and got.shape == (size,)
+            np.testing.assert_array_equal(got, want)

@@ -17,7 +17,7 @@ import numpy as np
 
 from . import neighbors
 from .. import se3
-from .._ops import bucket_capacity, to_device
+from .._ops import bucket_capacity, count_true, to_device
 from ..kernel_store import stored_jit
 from ._icp import pad_points_host
 
@@ -50,7 +50,7 @@ def _evaluate(source, source_count, target, target_count, T, distance, *, table_
     d2, index, _ = neighbors.nearest_with_points(grid, q, count=source_count)
     valid = jnp.arange(q.shape[0]) < source_count
     inlier = valid & (index >= 0) & (d2 <= distance * distance)
-    n = jnp.sum(inlier).astype(jnp.int32)
+    n = count_true(inlier)
     rmse = jnp.sqrt(jnp.sum(jnp.where(inlier, d2, 0.0)) / n.astype(jnp.float32))
     fitness = n.astype(jnp.float32) / jnp.maximum(source_count, 1).astype(jnp.float32)
     return RegistrationStats(num_inliers=n, rmse=jnp.where(n > 0, rmse, jnp.nan), fitness=fitness,

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import morton, se3, tree
-from .._ops import bucket_capacity, to_device
+from .._ops import bucket_capacity, count_true, nonzero_rows, to_device
 from ..kernel_store import stored_jit
 from ..map import OccupancyMap
 from . import neighbors
@@ -174,10 +174,10 @@ def _solve(m1, m2, grid, targets, samples, count, T0, centre, thresholds, mcd, *
     def target_covariances(s: _State, inlier, idx):
         """``s.C1, s.have`` with the covariances of the matched targets not computed yet."""
         need = inlier & ~s.have[jnp.maximum(idx, 0)]
-        rows = jnp.nonzero(need, size=S, fill_value=S)[0]
+        rows = nonzero_rows(need, S, S)
         new = idx.at[rows].get(mode="fill", fill_value=n_targets)  # n_targets: padding, dropped
         C = _covariances_of_rows(m1, targets.at[new].get(mode="fill", fill_value=0.0) + centre,
-                                 jnp.sum(need), thresholds[0], off)
+                                 count_true(need), thresholds[0], off)
         return s.C1.at[new].set(C, mode="drop"), s.have.at[new].set(True, mode="drop")
 
     def running(s: _State):
@@ -201,7 +201,7 @@ def _solve(m1, m2, grid, targets, samples, count, T0, centre, thresholds, mcd, *
             e = jnp.where(inlier[:, None], p - y, 0.0)
             J = jnp.concatenate([se3.skew(y), -jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), y.shape + (3,))],
                                 -1)
-            energy = jnp.einsum("pa,pab,pb->", e, W, e) / jnp.maximum(jnp.sum(inlier), 1).astype(jnp.float32)
+            energy = jnp.einsum("pa,pab,pb->", e, W, e) / jnp.maximum(count_true(inlier), 1).astype(jnp.float32)
             better = energy < s.best_energy * (1.0 - 1e-4)
             H = jnp.einsum("pai,pab,pbj->ij", J, W, J)
             g = jnp.einsum("pai,pab,pb->i", J, W, e)
@@ -214,7 +214,7 @@ def _solve(m1, m2, grid, targets, samples, count, T0, centre, thresholds, mcd, *
                               stall=jnp.where(better, 0, s.stall + 1), C1=C1_all, have=have)
 
         def finish() -> _State:
-            n = jnp.sum(inlier).astype(jnp.int32)
+            n = count_true(inlier)
             rmse = jnp.sqrt(jnp.sum(jnp.where(inlier, d2, 0.0)) / jnp.maximum(n, 1).astype(jnp.float32))
             return s._replace(T=T_at, inliers=n, rmse=rmse, done=jnp.bool_(True))
 

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._ops import any_of, count_true, cumsum, to_device
+from .._ops import any_of, count_true, cumsum, nonzero_rows, to_device
 from .._sort import lexsort_rows
 
 __all__ = ["HashGrid", "build_grid", "build_grids", "nearest", "nearest_with_points", "any_within", "grid_table_size",
@@ -414,7 +414,7 @@ def nearest_with_points(grid: HashGrid, queries, level=0, count=None, two_phase:
     d2, idx, match, sure = _blocked(near, q, count, _FILL + ((True, (), jnp.bool_),))
     redo = ~sure if count is None else ~sure & (jnp.arange(n) < count)
     n_redo = count_true(redo)
-    rows = jnp.nonzero(redo, size=n, fill_value=n)[0]
+    rows = nonzero_rows(redo, n, n)
     d2r, idxr, matchr = _blocked(full, q.at[rows].get(mode="fill", fill_value=_FAR), n_redo, _FILL, _REDO_CHUNK)
     put = lambda a, v: a.at[rows].set(v, mode="drop")  # noqa: E731
     return put(d2, d2r), put(idx, idxr), put(match, matchr)
