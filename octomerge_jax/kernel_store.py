@@ -17,6 +17,7 @@ import contextvars
 import functools
 import hashlib
 import inspect
+import json
 import os
 import pickle
 import platform
@@ -30,8 +31,9 @@ from jax.experimental import serialize_executable
 from ._fileutil import atomic_output, remove_stale_temp_files
 from ._ops import is_traced
 
-__all__ = ["DEFAULT_MAX_BYTES", "LOAD_EVENT", "StoredJit", "stored_jit", "open_store", "close_store", "store_dir",
-           "tidy_store", "compile_listener", "forget_programs"]
+__all__ = ["DEFAULT_MAX_BYTES", "LOAD_EVENT", "RECENT_FILE", "RECENT_MAX_PROGRAMS", "StoredJit", "stored_jit",
+           "open_store", "close_store", "store_dir", "tidy_store", "prefetch_recent", "compile_listener",
+           "forget_programs"]
 
 LOAD_EVENT = "/octomerge_jax/kernel_store/loads"
 """``jax.monitoring`` event recorded for every program loaded from the store."""
@@ -47,6 +49,20 @@ _STATE: dict = {"dir": None, "environment": None, "backend_ready": False}
 _KERNELS: weakref.WeakSet = weakref.WeakSet()  # every StoredJit, for forget_programs
 _FORMAT = 1
 
+RECENT_FILE = "recent-programs.json"
+"""The store's list of the programs the last command that closed it used, in the order it first
+used them, with the environment they were made in (``prefetch_recent``)."""
+
+RECENT_MAX_PROGRAMS = 16
+"""At most this many programs are listed; a command that used more (a warm-up, a batch of many
+sizes) leaves no list."""
+
+_BACKEND_LOCK = threading.Lock()
+_USED_LOCK = threading.Lock()
+_USED: list[str] = []  # the store files this process took programs from or wrote, in order
+_PREFETCHED: dict[str, object] = {}  # key -> executable loaded ahead by the prefetch thread
+_PREFETCH: dict = {"thread": None, "stop": None}
+
 
 def open_store(path: str | os.PathLike, max_bytes: int = DEFAULT_MAX_BYTES) -> Path | None:
     """Keep compiled ``stored_jit`` kernels in directory ``path`` (``~`` expanded; created) for
@@ -60,6 +76,9 @@ def open_store(path: str | os.PathLike, max_bytes: int = DEFAULT_MAX_BYTES) -> P
     except OSError:
         return None
     tidy_store(path, max_bytes)
+    _stop_prefetch()
+    with _USED_LOCK:
+        _USED.clear()
     _STATE["dir"] = path
     _STATE["environment"] = None
     return path
@@ -94,8 +113,78 @@ def tidy_store(path: Path, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
 
 
 def close_store() -> None:
-    """Stop reading and writing the store; kernels already loaded in this process stay loaded."""
+    """Stop reading and writing the store; kernels already loaded in this process stay loaded.
+    Waits for a prefetch (``prefetch_recent``) to stop, then lists the programs this process used
+    in the store's ``RECENT_FILE`` for the next command (more than ``RECENT_MAX_PROGRAMS``: the
+    file is removed; none: it is left as it is)."""
+    directory = _STATE["dir"]
+    _stop_prefetch()
     _STATE["dir"] = None
+    if directory is None:
+        return
+    with _USED_LOCK:
+        used = list(dict.fromkeys(_USED))
+        _USED.clear()
+    recent = directory / RECENT_FILE
+    if not used:  # a command without kernels (info, convert) keeps the last list
+        return
+    with contextlib.suppress(OSError):
+        if len(used) <= RECENT_MAX_PROGRAMS:
+            text = json.dumps({"format": _FORMAT, "environment": _environment(), "programs": used})
+            with atomic_output(recent, suffix=".json") as tmp:
+                tmp.write_text(text)
+        else:
+            recent.unlink(missing_ok=True)
+
+
+def _stop_prefetch() -> None:
+    """Stop a prefetch thread (after the program it is loading) and drop what it loaded."""
+    thread, stop = _PREFETCH["thread"], _PREFETCH["stop"]
+    if thread is not None:
+        stop.set()
+        thread.join()
+        _PREFETCH.update(thread=None, stop=None)
+    _PREFETCHED.clear()
+
+
+def prefetch_recent() -> bool:
+    """Start loading, in a background thread, the programs listed in the open store's
+    ``RECENT_FILE`` (the last command's, in the order it used them) when they were made in this
+    environment: a command like the last one then finds them loaded instead of loading each when
+    it first calls it (0.1-0.4 s each, in which the loading releases the GIL). A program the
+    command calls while the thread loads it waits for it; ``close_store`` stops the thread.
+    Returns whether a thread was started. docs/design.md, "Compile cache and warm-up"."""
+    directory = _STATE["dir"]
+    if directory is None or _PREFETCH["thread"] is not None or jax.device_count() != 1:
+        return False
+    try:
+        with open(directory / RECENT_FILE) as f:
+            recent = json.load(f)
+        names = [str(n) for n in recent["programs"]][:RECENT_MAX_PROGRAMS]
+        if recent.get("format") != _FORMAT or recent.get("environment") != _environment():
+            return False
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    stop = threading.Event()
+    thread = threading.Thread(target=_prefetch, args=(directory, names, stop), name="octomerge-prefetch",
+                              daemon=True)
+    _PREFETCH.update(thread=thread, stop=stop)
+    thread.start()
+    return True
+
+
+def _prefetch(directory: Path, names: list[str], stop: threading.Event) -> None:
+    """The prefetch thread: load each listed program not yet taken (a failure skips it)."""
+    for name in names:
+        if stop.is_set():
+            return
+        key = name.removesuffix(".pkl").rsplit("-", 1)[-1]
+        with _key_lock(key):
+            if key in _PREFETCHED or any(key in k._loaded for k in list(_KERNELS)):
+                continue
+            compiled = _load_file(directory / name)
+            if compiled is not None:
+                _PREFETCHED[key] = compiled
 
 
 def store_dir() -> Path | None:
@@ -145,16 +234,17 @@ def _prepare_backend() -> None:
     """Set up what lowering would have set up before a deserialized program runs: on the CPU,
     jaxlib binds LAPACK's routines (ICP's solves call them) only when a linear-algebra op is
     lowered, and a loaded program calling them unbound crashes the process."""
-    if _STATE["backend_ready"]:
-        return
-    try:
-        from jax._src.lax.linalg import initialize_lapack  # noqa: PLC0415 - private, checked below
+    with _BACKEND_LOCK:
+        if _STATE["backend_ready"]:
+            return
+        try:
+            from jax._src.lax.linalg import initialize_lapack  # noqa: PLC0415 - private, checked below
 
-        initialize_lapack()
-    except (ImportError, AttributeError):
-        spec = jax.ShapeDtypeStruct((2, 2), "float32")
-        jax.jit(jax.numpy.linalg.eigh).lower(spec)
-    _STATE["backend_ready"] = True
+            initialize_lapack()
+        except (ImportError, AttributeError):
+            spec = jax.ShapeDtypeStruct((2, 2), "float32")
+            jax.jit(jax.numpy.linalg.eigh).lower(spec)
+        _STATE["backend_ready"] = True
 
 
 def _cache_threshold_override():
@@ -302,13 +392,17 @@ class StoredJit:
             with _key_lock(key):  # another thread compiling it: wait and take its program
                 compiled = self._loaded.get(key)
                 if compiled is None:
-                    compiled = self._load(directory, key)
-                if compiled is None:
-                    listener = _LISTENER.get()
-                    if listener is not None:
-                        listener(self._name)
-                    compiled = _compile_fresh(self._for_store.lower(*dynamic, **static))
-                    self._save(directory, key, compiled)
+                    compiled = _PREFETCHED.pop(key, None)
+                    if compiled is None:
+                        compiled = self._load(directory, key)
+                    if compiled is None:
+                        listener = _LISTENER.get()
+                        if listener is not None:
+                            listener(self._name)
+                        compiled = _compile_fresh(self._for_store.lower(*dynamic, **static))
+                        self._save(directory, key, compiled)
+                    with _USED_LOCK:
+                        _USED.append(self._path(directory, key).name)
                 self._loaded[key] = compiled
         return compiled
 
@@ -318,17 +412,7 @@ class StoredJit:
     def _load(self, directory: Path, key: str):
         """The stored executable for ``key``, or ``None`` (absent, unreadable or not loadable
         here: it is then compiled and stored again)."""
-        try:
-            with open(self._path(directory, key), "rb") as f:
-                payload, in_tree, out_tree = pickle.load(f)
-            _prepare_backend()
-            compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
-        except Exception:  # noqa: BLE001 - a bad entry costs a compile, never the merge
-            return None
-        with contextlib.suppress(OSError):
-            os.utime(self._path(directory, key))  # recently used: kept by tidy_store
-        jax.monitoring.record_event(LOAD_EVENT)
-        return compiled
+        return _load_file(self._path(directory, key))
 
     def _save(self, directory: Path, key: str, compiled) -> None:
         """Write ``compiled`` under ``key`` (``atomic_output``); a program that cannot be
@@ -340,6 +424,21 @@ class StoredJit:
                 tmp.write_bytes(blob)
         except Exception:  # noqa: BLE001 - storing is an optimisation
             return
+
+
+def _load_file(path: Path):
+    """The executable stored in ``path``, or ``None`` (absent, unreadable or not loadable here)."""
+    try:
+        with open(path, "rb") as f:
+            payload, in_tree, out_tree = pickle.load(f)
+        _prepare_backend()
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+    except Exception:  # noqa: BLE001 - a bad entry costs a compile, never the merge
+        return None
+    with contextlib.suppress(OSError):
+        os.utime(path)  # recently used: kept by tidy_store
+    jax.monitoring.record_event(LOAD_EVENT)
+    return compiled
 
 
 def stored_jit(fun=None, *, static_argnames: tuple[str, ...] = (), donate_argnums: tuple[int, ...] = ()):

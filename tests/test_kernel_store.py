@@ -204,3 +204,50 @@ def test_the_readme_path_opens_under_home(tmp_path, monkeypatch):
         kernel_store.close_store()
         if run_store is not None:
             kernel_store.open_store(run_store)
+
+
+def _recent(path: Path) -> dict:
+    return json.loads((path / kernel_store.RECENT_FILE).read_text())
+
+
+def test_a_command_lists_its_programs_and_the_next_loads_them_ahead(tmp_path):
+    a, b = A[:4, :4], B[:4]
+    with own_kernel_store(tmp_path / "kernels", [STORED]) as path:
+        expected = np.asarray(STORED(a, b, scale=21))
+    listed = _recent(path)["programs"]
+    assert len(listed) == 1 and listed[0].startswith("solve_sorted-") and (path / listed[0]).exists()
+    # the next command: the program is loaded by the prefetch thread, then taken by the call
+    with own_kernel_store(path, [STORED]):
+        assert kernel_store.prefetch_recent()
+        kernel_store._PREFETCH["thread"].join()
+        assert len(kernel_store._PREFETCHED) == 1
+        heard = []
+        with kernel_store.compile_listener(heard.append):
+            np.testing.assert_array_equal(STORED(a, b, scale=21), expected)
+        assert heard == [] and not kernel_store._PREFETCHED and STORED.programs() == 1
+    assert _recent(path)["programs"] == listed
+
+
+def test_no_prefetch_from_another_environment_or_a_bad_list(tmp_path):
+    with own_kernel_store(tmp_path / "kernels", [STORED]) as path:
+        STORED(A[:2, :2], B[:2], scale=22)
+    recent = path / kernel_store.RECENT_FILE
+    good = recent.read_text()
+    for text in (good.replace('"environment": "', '"environment": "other '), "{not json", '{"format": 1}', ""):
+        recent.write_text(text)
+        with own_kernel_store(path, [STORED]):
+            assert not kernel_store.prefetch_recent()
+    recent.unlink()
+    with own_kernel_store(path, [STORED]):
+        assert not kernel_store.prefetch_recent()  # no list: nothing to load
+
+
+def test_a_command_of_many_programs_leaves_no_list(tmp_path, monkeypatch):
+    with own_kernel_store(tmp_path / "kernels", [STORED]) as path:
+        STORED(A[:2, :2], B[:2], scale=23)
+    assert (path / kernel_store.RECENT_FILE).exists()
+    monkeypatch.setattr(kernel_store, "RECENT_MAX_PROGRAMS", 1)
+    with own_kernel_store(path, [STORED]):
+        STORED(A[:2, :2], B[:2], scale=23)
+        STORED(A[:2, :2], B[:2], scale=24)
+    assert not (path / kernel_store.RECENT_FILE).exists()

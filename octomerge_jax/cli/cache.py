@@ -70,12 +70,16 @@ def command_caches():
     """What one ``octomerge`` command runs inside: JAX's persistent compilation cache turned on
     (``enable_compilation_cache``; it stays on) and the merge's large kernels kept, ready to
     load without tracing, in the kernel store ``cache_dir()/kernels`` (``kernel_store``; closed
-    again at the end unless it was open before). ``$OCTOMERGE_CACHE_DIR=off`` turns both off."""
-    from ..kernel_store import close_store, open_store, store_dir
+    again at the end unless it was open before), the programs the last command used loaded ahead
+    in a background thread (``kernel_store.prefetch_recent``). ``$OCTOMERGE_CACHE_DIR=off``
+    turns both off."""
+    from ..kernel_store import close_store, open_store, prefetch_recent, store_dir
 
     enable_compilation_cache()
     path = cache_dir()
     opened = path is not None and store_dir() is None and open_store(Path(path) / "kernels") is not None
+    if opened:
+        prefetch_recent()
     try:
         yield
     finally:
