@@ -163,6 +163,7 @@ def prefetch_recent() -> bool:
         names = [str(n) for n in recent["programs"]][:RECENT_MAX_PROGRAMS]
         if recent.get("format") != _FORMAT or recent.get("environment") != _environment():
             return False
+        names = [n for n in names if Path(n).name == n and n.endswith(".pkl")]  # entries of the store only
     except (OSError, ValueError, KeyError, TypeError):
         return False
     stop = threading.Event()

@@ -237,6 +237,14 @@ def test_no_prefetch_from_another_environment_or_a_bad_list(tmp_path):
         recent.write_text(text)
         with own_kernel_store(path, [STORED]):
             assert not kernel_store.prefetch_recent()
+    # names outside the store are not read (a loadable copy there would be a second program)
+    stored = next(path.glob("solve_sorted-*.pkl"))
+    (path.parent / "copy-outside.pkl").write_bytes(stored.read_bytes())
+    recent.write_text(good.replace('"programs": ["', '"programs": ["../copy-outside.pkl", "'))
+    with own_kernel_store(path, [STORED]):
+        assert kernel_store.prefetch_recent()
+        kernel_store._PREFETCH["thread"].join()
+        assert len(kernel_store._PREFETCHED) == 1
     recent.unlink()
     with own_kernel_store(path, [STORED]):
         assert not kernel_store.prefetch_recent()  # no list: nothing to load
