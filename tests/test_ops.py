@@ -6,8 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from octomerge_jax._ops import (all_of, any_of, cond_with_shapes, count_true, cummax, cumsum, materialize,
-                                nonzero_rows)
+from octomerge_jax._ops import (all_of, any_of, column_extent, cond_with_shapes, count_true, cummax, cumsum,
+                                materialize, nonzero_rows)
 
 
 def test_materialize_returns_the_value_and_traces_it_once():
@@ -96,3 +96,19 @@ def test_nonzero_rows_matches_jnp_nonzero_with_size():
             want = jnp.nonzero(mask, size=size, fill_value=fill)[0]
             assert got.dtype == jnp.int32 and got.shape == (size,)
             np.testing.assert_array_equal(got, want)
+
+
+def test_column_extent_matches_numpy_over_valid_rows():
+    rng = np.random.default_rng(5)
+    x = rng.integers(-(1 << 23), 1 << 23, (5000, 3)).astype(np.int32)
+    x[7] = [2**31 - 128, -(2**31), 123]  # int32 values made from float32 floors are exact too
+    for p in (1.0, 0.5, 0.001):
+        valid = rng.random(5000) < p
+        valid[7] = True
+        lo, hi = jax.jit(column_extent)(x, valid)
+        assert lo.dtype == jnp.int32 and hi.dtype == jnp.int32
+        np.testing.assert_array_equal(lo, x[valid].min(axis=0))
+        np.testing.assert_array_equal(hi, x[valid].max(axis=0))
+    lo, hi = column_extent(x, np.zeros(5000, bool))
+    np.testing.assert_array_equal(lo, 0)
+    np.testing.assert_array_equal(hi, 0)

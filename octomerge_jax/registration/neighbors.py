@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._ops import any_of, count_true, cumsum, nonzero_rows, to_device
+from .._ops import any_of, column_extent, count_true, cumsum, nonzero_rows, to_device
 from .._sort import lexsort_rows
 
 __all__ = ["HashGrid", "build_grid", "build_grids", "nearest", "nearest_with_points", "any_within", "grid_table_size",
@@ -141,12 +141,8 @@ def _build_level(points, count, cell_size, table_size, bits: int, cell_capacity:
     safe = jnp.where(valid[:, None], points, 0.0)
     sub = _cells(safe, cell_size * 0.5)  # half-size sub-cells (for centroid levels)
     cells = jnp.right_shift(sub, 1) if centroids else _cells(safe, cell_size)
-    big = jnp.iinfo(jnp.int32).max
-    origin = jnp.min(jnp.where(valid[:, None], cells, big), axis=0)
-    top = jnp.max(jnp.where(valid[:, None], cells, -big), axis=0)
-    some = any_of(valid)
-    origin = jnp.where(some, origin, 0)
-    dims = jnp.where(some, top - origin + 1, 1)
+    origin, top = column_extent(cells, valid)  # cells come from float32 floors: exact in float32
+    dims = jnp.where(any_of(valid), top - origin + 1, 1)
     table_size = jnp.asarray(table_size, jnp.int32)
     dense = jnp.prod(dims.astype(jnp.float32)) <= table_size.astype(jnp.float32)
     mask = table_size - 1

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import morton
-from .._ops import bucket_capacity, quarter_octave_capacity, to_device
+from .._ops import bucket_capacity, column_extent, quarter_octave_capacity, to_device
 from ..budget import check_allocation
 from ..map import OccupancyMap
 from ..se3 import check_rigid_transform
@@ -95,11 +95,10 @@ class Plan(NamedTuple):
 def _key_bounds(m: OccupancyMap):
     """Per-axis min key and max key + 1 ``(3,) int32`` over the leaves' cubes (on device:
     no host copy of the leaves)."""
-    valid = m.valid_mask()[:, None]
+    valid = m.valid_mask()
     keys = morton.words_to_keys(m.code)
     end = keys + jnp.left_shift(1, _D - m.depth)[:, None]
-    return (jnp.min(jnp.where(valid, keys, KEY_MAX), axis=0),
-            jnp.max(jnp.where(valid, end, 0), axis=0))
+    return column_extent(keys, valid)[0], column_extent(end, valid)[1]  # keys below 2^16
 
 
 def transformed_bounds(m: OccupancyMap, T_dst_src) -> tuple[np.ndarray, np.ndarray]:
