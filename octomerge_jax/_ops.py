@@ -194,8 +194,8 @@ def nonzero_rows(mask, size: int, fill: int):
     """The indices of the true elements of bool ``mask (n,)`` in order, as int32 ``(size,)``:
     the first ``size`` of them, the rows after the last one ``fill``. ``jnp.nonzero(mask,
     size=size, fill_value=fill)[0]`` from one prefix sum and one scatter (``jnp.nonzero``
-    takes two prefix sums, a histogram and a sum: 0.5-0.6 s of compile CPU at 2^16 rows
-    against 0.16-0.21 s; docs/design.md, "Reductions XLA:CPU compiles fast")."""
+    takes two prefix sums, a histogram and a sum, and compiles slower;
+    docs/design.md, "Reductions XLA:CPU compiles fast")."""
     mask = jnp.asarray(mask)
     n = mask.shape[0]
     pos = jnp.where(mask, cumsum(mask.astype(jnp.int32)) - 1, size)  # past the end: dropped

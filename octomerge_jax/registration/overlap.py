@@ -23,7 +23,7 @@ import numpy as np
 
 from . import neighbors
 from .. import se3
-from .._ops import to_device
+from .._ops import count_true, to_device
 
 __all__ = ["Overlap", "overlap"]
 
@@ -58,7 +58,7 @@ def _overlap_bbox(p1, c1, p2, c2, T_1_2, margin):
     m2 = v2 & _inside(w, lo1, hi1)
     lo2, hi2 = _bbox(w, m2)
     m1 = v1 & _inside(p1, lo2 - margin, hi2 + margin)
-    return Overlap(m1, m2, jnp.sum(m1).astype(jnp.int32), jnp.sum(m2).astype(jnp.int32))
+    return Overlap(m1, m2, count_true(m1), count_true(m2))
 
 
 @partial(jax.jit, static_argnames=("cell_capacity", "tables"))
@@ -71,7 +71,7 @@ def _overlap_voxel(p1, c1, p2, c2, T_1_2, radius, *, cell_capacity, tables):
     g2 = neighbors.build_grids(w, c2, r, table_sizes=(tables[1],), cell_capacity=cell_capacity)
     m2 = v2 & neighbors.any_within(g1, w, radius)
     m1 = v1 & neighbors.any_within(g2, p1, radius)
-    return Overlap(m1, m2, jnp.sum(m1).astype(jnp.int32), jnp.sum(m2).astype(jnp.int32))
+    return Overlap(m1, m2, count_true(m1), count_true(m2))
 
 
 def _as_padded(points, count, name):

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..._ops import cumsum
+from ..._ops import count_true, cumsum
 from .. import neighbors
 from ...types import COARSE_MATCHING_CHOICES as COARSE_MATCHING
 
@@ -57,7 +57,7 @@ def voxel_downsample(points, valid, cell):
     v = valid[order]
     sums = jax.ops.segment_sum(jnp.where(v[:, None], points[order], 0.0), seg, num_segments=n)
     counts = jax.ops.segment_sum(v.astype(jnp.float32), seg, num_segments=n)
-    return sums / jnp.maximum(counts, 1.0)[:, None], counts, jnp.sum(start & v).astype(jnp.int32)
+    return sums / jnp.maximum(counts, 1.0)[:, None], counts, count_true(start & v)
 
 
 def coarse_rows(n: int, downsample: bool) -> int:

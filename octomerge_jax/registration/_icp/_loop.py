@@ -125,7 +125,7 @@ def _recorded(path: IcpPath | None, k, T, d2, inlier, distance) -> IcpPath | Non
     """``path`` with row ``k`` set (``None`` when the run records nothing)."""
     if path is None:
         return None
-    n = jnp.sum(inlier).astype(jnp.int32)
+    n = count_true(inlier)
     rmse = jnp.sqrt(jnp.sum(jnp.where(inlier, d2, 0.0)) / jnp.maximum(n, 1).astype(jnp.float32))
     return IcpPath(path.T.at[k].set(T), path.rmse.at[k].set(rmse), path.num_inliers.at[k].set(n),
                    path.distance.at[k].set(distance))
