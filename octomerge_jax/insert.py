@@ -88,17 +88,22 @@ _BRICK_CELLS = _BRICK ** 3
 
 @dataclasses.dataclass
 class CapacityPlan:
-    """High-water marks of the static sizes used by ``compute_update`` (mutable, host only).
+    """High-water marks of the static sizes used by ``compute_update`` and by the tree update
+    that applies it (``tree.apply_voxel_updates``); mutable, host only.
 
-    Pass one plan to every scan of a run (``sim.build_map`` and ``octomerge build`` do): each
-    static size only grows, so the jitted stages compile a handful of times per run instead
-    of once per distinct scan shape. ``reserve`` pre-sizes from scans known in advance.
+    Pass one plan to every scan of a run (``sim.make_two_robot_maps`` shares one between its
+    two robots, ``octomerge build`` one per map): each static size only grows, so the jitted
+    stages compile a handful of times per run instead of once per distinct scan shape.
+    ``reserve`` pre-sizes from scans known in advance.
     """
 
     points: int = 0
     bricks: int = 0
     marked: int = 0
     marked_bricks: int = 0
+    split_rows: int = 0  # the tree update's (``tree.apply_voxel_updates``)
+    fill_rows: int = 0
+    leaves: int = 0  # map capacity with headroom: a later map of the run starts at this size
 
     def grow(self, name: str, n: int, minimum: int) -> int:
         bucket = quarter_octave_capacity if name == "points" else bucket_capacity
@@ -356,7 +361,7 @@ def insert_point_cloud(m: OccupancyMap, points, sensor_origin, max_range: float 
     p = m.params
     deltas = jnp.where(upd.occupied, p.hit_log_odds, p.miss_log_odds).astype(jnp.float32)
     valid = jnp.arange(upd.occupied.shape[0]) < upd.count
-    return apply_voxel_updates(m, upd.words, deltas, valid)
+    return apply_voxel_updates(m, upd.words, deltas, valid, sizes=plan)
 
 
 def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: float = -1.0, *,
@@ -382,6 +387,9 @@ def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: floa
         for pts, o in zip(clouds, origins):
             plan.reserve(pts, o, m.resolution, max_range)
     p = m.params
+    capacity = m.capacity
+    if plan.leaves > m.capacity:  # a later map of the run starts at the size the earlier ones reached
+        m = m.with_capacity(plan.leaves)
     for start in range(0, len(clouds), batch_size):
         words, deltas = [], []
         for pts, o in zip(clouds[start:start + batch_size], origins[start:start + batch_size]):
@@ -400,5 +408,6 @@ def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: floa
         d = np.zeros((cap,), np.float32)
         w[:n] = np.concatenate(words)
         d[:n] = np.concatenate(deltas)
-        m = apply_voxel_updates(m, to_device(w), to_device(d), to_device(np.arange(cap) < n))
-    return m
+        m = apply_voxel_updates(m, to_device(w), to_device(d), to_device(np.arange(cap) < n), sizes=plan)
+    trimmed = max(capacity, bucket_capacity(m.num_leaves))  # the headroom of the updates removed
+    return m.with_capacity(trimmed) if trimmed < m.capacity else m

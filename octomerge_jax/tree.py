@@ -382,7 +382,8 @@ def _apply_updates(m: OccupancyMap, p, s, deltas, fill_capacity: int, capacity: 
     return _prune(out)
 
 
-def _apply(m: OccupancyMap, words, deltas, valid) -> OccupancyMap:
+def _apply(m: OccupancyMap, words, deltas, valid, sizes=None) -> OccupancyMap:
+    grow = sizes.grow if sizes is not None else lambda _name, n, minimum: bucket_capacity(n, minimum)
     words = jnp.asarray(words, jnp.int32).reshape(-1, 2)
     n = words.shape[0]
     if n == 0:
@@ -390,23 +391,28 @@ def _apply(m: OccupancyMap, words, deltas, valid) -> OccupancyMap:
     plan = _plan_updates_jit(m, words, valid)
     num_split, num_unique, num_touched = (int(x) for x in jax.device_get(
         (plan["num_split"], plan["num_unique"], plan["num_touched"])))
-    splits = _plan_splits(plan, _split_rows(num_split, n))
+    # only the arrays it reads: ``touched`` has the map's capacity, which is no key of this program
+    inputs = {k: plan[k] for k in ("split", "code", "leaf_depth")}
+    splits = _plan_splits(inputs, grow("split_rows", _split_rows(num_split, n), 1))
     num_fill = int(splits["num_fill"])
     needed = m.num_leaves - num_touched + num_fill + num_unique
     cap = bucket_capacity(max(needed, m.capacity))
+    if sizes is not None and cap > m.capacity:  # a run of updates grows with headroom: fewer capacities
+        cap = grow("leaves", 2 * needed, 1)
     check_allocation(3 * cap * 16, f"voxel updates: {needed} leaves after {num_unique} updated "
                      f"voxels on a map of {m.num_leaves} leaves at {m.resolution:g} m")
     if cap > m.capacity:  # grown first: the update compiles once per output capacity
         plan = {**plan, "touched": jnp.pad(plan["touched"], (0, cap - m.capacity))}
         m = m.with_capacity(cap)
-    return _apply_updates(m, plan, splits, deltas, bucket_capacity(num_fill, 256), cap)
+    return _apply_updates(m, plan, splits, deltas, grow("fill_rows", num_fill, 1024), cap)
 
 
 def _split_rows(num_split: int, n: int) -> int:
     """Rows of ``_plan_splits`` for ``num_split`` voxels inside coarse leaves among ``n``
-    updates: ``256 * 16^k``, at most ``n``'s bucket. Steps of 16 rather than 2: a run of scans
-    meets a few sizes, so the updates compile a few programs (the rows cost little)."""
-    rows = 256
+    updates: ``4096 * 16^k``, at most ``n``'s bucket. Steps of 16 rather than 2, from more
+    rows than the first scans need: a run of scans meets a few sizes, so the updates compile
+    a few programs (the rows cost little)."""
+    rows = 4096
     while rows < num_split:
         rows *= 16
     return min(rows, bucket_capacity(n))
@@ -419,18 +425,23 @@ def _pad_rows(x, n_cap, fill):
     return out
 
 
-def apply_voxel_updates(m: OccupancyMap, words, deltas, valid=None) -> OccupancyMap:
+def apply_voxel_updates(m: OccupancyMap, words, deltas, valid=None, *, sizes=None) -> OccupancyMap:
     """Add log-odds ``deltas (n,)`` to the finest voxels ``words (n, 2)`` with OctoMap's
     per-update clamping (``updateNodeLogOdds``), in row order for repeated voxels.
 
     Unknown voxels start at 0; a voxel inside a coarse (pruned) leaf splits that leaf
     locally (thesis §5.2.3 case 3: siblings along the path inherit the leaf's value) and the
     result is pruned maximally. Capacity grows to the next bucket when needed.
+
+    ``sizes``: optional ``insert.CapacityPlan`` (anything with its ``grow(name, n, minimum)``)
+    keeping high-water marks of the update's work sizes (``split_rows``, ``fill_rows``)
+    across calls, so a run of updates compiles each size once; a map that must grow then
+    grows to twice the leaves it needs (``leaves``), and the caller trims it at the end.
     """
     deltas = jnp.asarray(deltas, jnp.float32).reshape(-1)
     n = deltas.shape[0]
     valid = jnp.ones((n,), bool) if valid is None else jnp.asarray(valid, bool).reshape(-1)
-    return _apply(m, words, deltas, valid)
+    return _apply(m, words, deltas, valid, sizes)
 
 
 def update_points(m: OccupancyMap, points, occupied) -> OccupancyMap:

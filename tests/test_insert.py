@@ -165,6 +165,23 @@ def test_no_recompile_same_bucket():
     assert insert._extract.programs() == extracts
 
 
+def test_a_shared_plan_compiles_the_tree_updates_once_per_run(lab_scans):
+    """Maps of one run sharing a ``CapacityPlan`` (as the two robots of ``sim.make_two_robot_maps``
+    do): the later map starts at the capacity and work sizes the earlier one reached, so its
+    updates compile nothing; its leaves are those of inserting without a plan, and the headroom
+    the updates grew with is trimmed off the result."""
+    clouds, origins = lab_scans
+    res = 0.05
+    plan = insert.CapacityPlan()
+    first = insert.insert_point_clouds(empty(res), clouds, origins, batch_size=1, plan=plan)
+    assert plan.leaves > first.capacity == insert.bucket_capacity(first.num_leaves)
+    programs = (tree._apply_updates.programs(), tree._plan_splits.programs())
+    second = insert.insert_point_clouds(empty(res), clouds, origins, batch_size=1, plan=plan)
+    assert (tree._apply_updates.programs(), tree._plan_splits.programs()) == programs
+    assert tree.equal(second, first) and second.capacity == first.capacity
+    assert tree.equal(first, insert.insert_point_clouds(empty(res), clouds, origins, batch_size=1))
+
+
 def test_bad_arguments():
     with pytest.raises(ValueError, match="points"):
         insert.compute_update(np.zeros((4, 2)), np.zeros(3), 0.1)

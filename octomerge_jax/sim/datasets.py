@@ -13,7 +13,7 @@ import dataclasses
 
 import numpy as np
 
-from ..insert import insert_point_clouds
+from ..insert import CapacityPlan, insert_point_clouds
 from ..map import OccupancyMap, OccupancyParams, empty
 from .scenes import Scene, make_scene
 from .sensors import DepthCamera, scan
@@ -40,15 +40,25 @@ class RobotRun:
     T_world_map: np.ndarray
 
 
-def build_map(scans, poses_map_sensor, resolution: float, max_range: float = -1.0,
-              params: OccupancyParams | None = None) -> OccupancyMap:
-    """Insert sensor-frame scans at their poses (OctoMap ``insertPointCloud`` per scan)."""
+def _map_clouds(scans, poses_map_sensor) -> tuple[list[np.ndarray], np.ndarray]:
+    """Sensor-frame scans moved to the map frame: ``(clouds (n_i, 3) float32, origins (N, 3))``."""
     clouds, origins = [], []
     for pts, T in zip(scans, np.asarray(poses_map_sensor, dtype=np.float64)):
         clouds.append((np.asarray(pts, np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
         origins.append(T[:3, 3])
-    return insert_point_clouds(empty(resolution, params), clouds, np.asarray(origins).reshape(-1, 3),
-                               max_range)
+    return clouds, np.asarray(origins, np.float64).reshape(-1, 3)
+
+
+def build_map(scans, poses_map_sensor, resolution: float, max_range: float = -1.0,
+              params: OccupancyParams | None = None, *, plan: CapacityPlan | None = None) -> OccupancyMap:
+    """Insert sensor-frame scans ``(n_i, 3)`` [m] at their poses ``(N, 4, 4)`` (OctoMap
+    ``insertPointCloud`` per scan). ``plan``: a ``CapacityPlan`` shared with other maps of
+    the run (reserved for these scans here); default one of their own."""
+    clouds, origins = _map_clouds(scans, poses_map_sensor)
+    if plan is not None:
+        for pts, o in zip(clouds, origins):
+            plan.reserve(pts, o, resolution, max_range)
+    return insert_point_clouds(empty(resolution, params), clouds, origins, max_range, plan=plan)
 
 
 def simulate_runs(scene="lab", *, sensor=None, spacing: float | None = None, yaw_2_rad: float = np.pi / 4,
@@ -104,6 +114,10 @@ def make_two_robot_maps(scene="lab", resolution: float = 0.1, *, sensor=None, sp
     run1, run2, T_1_2 = simulate_runs(scene, sensor=sensor, spacing=spacing, yaw_2_rad=yaw_2_rad,
                                       offset_2=offset_2, drift_translation=drift_translation,
                                       drift_yaw_rad=drift_yaw_rad, seed=seed)
-    map1 = build_map(run1.scans, run1.poses_map_sensor, resolution, max_range, params)
-    map2 = build_map(run2.scans, run2.poses_map_sensor, resolution, max_range, params)
+    plan = CapacityPlan()  # both maps' scans sized up front: map 2 reuses map 1's programs
+    for run in (run1, run2):
+        for pts, o in zip(*_map_clouds(run.scans, run.poses_map_sensor)):
+            plan.reserve(pts, o, resolution, max_range)
+    map1 = build_map(run1.scans, run1.poses_map_sensor, resolution, max_range, params, plan=plan)
+    map2 = build_map(run2.scans, run2.poses_map_sensor, resolution, max_range, params, plan=plan)
     return map1, map2, T_1_2
