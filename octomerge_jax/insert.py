@@ -375,6 +375,14 @@ def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: floa
     Args:
       clouds: sequence of ``(n_i, 3)`` point arrays [m] in the map frame.
       sensor_origins: ``(N, 3)`` sensor positions [m] in the map frame.
+      max_range: as ``insert_point_cloud``'s.
+      batch_size: scans whose updates are applied together.
+      plan: optional ``CapacityPlan`` shared with other calls of the run (default: one sized
+        from these scans). The map starts at the capacity the run reached and grows with
+        headroom while the scans go in; the result is trimmed to ``bucket_capacity`` of its
+        leaves (never below the capacity it came with).
+
+    Returns the updated map. Raises ``ValueError`` for malformed arguments.
     """
     clouds = list(clouds)
     origins = np.asarray(sensor_origins, dtype=np.float32).reshape(-1, 3)
