@@ -82,15 +82,24 @@ def calls(monkeypatch):
     """The work ahead's calls: ``(thread name, T_1_2)`` each."""
     seen = []
 
-    def transform_and_fuse(m1, m2, T_1_2, config, timings):
+    def transform_to_frame_1(m2, T_1_2, config, timings):
         seen.append((threading.current_thread().name, np.asarray(T_1_2)))
-        return None, np.zeros(1), None
+        return m2
 
-    monkeypatch.setattr(ahead, "transform_and_fuse", transform_and_fuse)
+    monkeypatch.setattr(ahead, "transform_to_frame_1", transform_to_frame_1)
+    monkeypatch.setattr(ahead, "fuse_in_frame_1", lambda m1, m2_in_1, config, timings: (np.zeros(1), None))
     return seen
 
 
-def test_the_rest_of_the_merge_runs_ahead_when_the_registration_compiles(store, calls):
+@pytest.fixture
+def beside(monkeypatch):
+    """The threads that compiled the fusion's second program ahead (``fusion.precompile_fuse``)."""
+    seen = []
+    monkeypatch.setattr(ahead, "precompile_fuse", lambda m1, m2_in_1: seen.append(threading.current_thread().name))
+    return seen
+
+
+def test_the_rest_of_the_merge_runs_ahead_when_the_registration_compiles(store, calls, beside):
     m = SimpleNamespace(resolution=0.1, capacity=1024)
     T = np.eye(4)
     T[0, 3] = 2.0
@@ -100,6 +109,7 @@ def test_the_rest_of_the_merge_runs_ahead_when_the_registration_compiles(store, 
         REGISTRATION_KERNEL(np.arange(3.0))
         REGISTRATION_KERNEL(np.arange(4.0))  # started once
     assert len(calls) == 1 and calls[0][0] == "octomerge-compile-ahead"
+    assert beside == ["octomerge-compile-beside"]  # the fusion's two programs side by side
     np.testing.assert_array_equal(calls[0][1], T)
     REGISTRATION_KERNEL._loaded.clear()
     with ahead.compile_ahead(m, m, None, MergeConfig()):
@@ -140,7 +150,7 @@ def test_work_ahead_that_fails_is_dropped(store, monkeypatch):
     def fail(*args):
         raise MemoryError("over the budget")
 
-    monkeypatch.setattr(ahead, "transform_and_fuse", fail)
+    monkeypatch.setattr(ahead, "transform_to_frame_1", fail)
     m = SimpleNamespace(resolution=0.1, capacity=1024)
     with ahead.compile_ahead(m, m, np.eye(4), MergeConfig()):
         assert int(REGISTRATION_KERNEL(np.arange(3.0))[1]) == 2

@@ -275,6 +275,41 @@ def test_report_counts_cases():
     assert r["refined_cells"] == out.num_leaves + r["pruned"]
 
 
+def test_refinement_cells_counts_on_the_host_what_plan_pair_counts():
+    # by hand: a depth-13 leaf holding two voxels of one depth-15 node splits into the leaves
+    # of a tree with internal nodes at depths 13, 14 and 15: 1 + 7 * 3 cells, 20 of them gap
+    # cells; an equal leaf in both maps is one cell
+    base = int(morton.keys_to_codes(np.array([32768] * 3, np.uint16)))
+    a, e = base, base + int(span(13))
+    m1 = omap.from_leaves(np.array([a, e], np.uint64), [13, 14], [0.4, -0.4], RES, capacity=CAP_IN)
+    m2 = omap.from_leaves(np.array([a + 5, a + 6, e], np.uint64), [16, 16, 14], [0.85, 0.85, 0.4], RES,
+                          capacity=CAP_IN)
+    assert _sizing.refinement_cells(m1, m2) == (23, 20) == _sizing.refinement_cells(m2, m1)
+    assert F.fuse(m1, m2, prune=False).num_leaves == 23
+    # random pairs with splits at depths 12-16: what the device's first phase counts
+    one = jnp.float32(1.0)
+    for seed in range(6):
+        m1, m2 = pair(seed)
+        plan = _pair.plan_pair(m1, m2, one, one, jnp.int32(0), gap_rows=2 * CAP_IN)
+        want = (int(plan.total), int(plan.gap_cells))
+        assert _sizing.refinement_cells(m1, m2) == want == _sizing.refinement_cells(m2, m1), seed
+        assert want[0] == F.fuse(m1, m2, prune=False).num_leaves
+    assert _sizing.refinement_cells(m1, omap.empty(RES)) == (m1.num_leaves, 0)
+
+
+def test_precompile_fuse_readies_the_program_fuse_lays_out_with():
+    """``precompile_fuse`` (the command line's work ahead, beside a thread that fuses) compiles
+    the second program a host ``fuse`` of the pair runs, so the fuse compiles none."""
+    m1, m2 = pair(7, capacity=1 << 13)  # a capacity of this test's own: its programs are new
+    before = _pair.emit_pair.programs()
+    if not F.precompile_fuse(m1, m2):
+        pytest.skip("no kernel store open (OCTOMERGE_TEST_CACHE_DIR=off)")
+    ready = _pair.emit_pair.programs()
+    assert ready == before + 1
+    assert_same_leaves(F.fuse(m1, m2), ref_fuse([m1, m2]))
+    assert _pair.emit_pair.programs() == ready
+
+
 def test_short_list_of_leaves_with_gaps(monkeypatch):
     # the pair kernel lists the leaves with gaps in fewer rows than their gap cells (each has
     # at least one): a list too short for the leaves, while the cells fit, is an overflow

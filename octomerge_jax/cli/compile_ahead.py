@@ -13,7 +13,8 @@ import numpy as np
 from ..budget import current_budget, memory_budget
 from ..kernel_store import compile_listener
 from ..map import OccupancyMap
-from ..pipeline import MergeConfig, Timings, candidate_listener, transform_and_fuse
+from ..fusion import precompile_fuse
+from ..pipeline import MergeConfig, Timings, candidate_listener, fuse_in_frame_1, transform_to_frame_1
 from ..pipeline.refine import precompile_polish
 
 __all__ = ["compile_ahead", "BYTES_PER_ROW", "SHARE_OF_BUDGET"]
@@ -26,14 +27,20 @@ BYTES_PER_ROW = 512
 """The work ahead's peak memory per leaf row of the two maps' capacities [bytes], compiling
 included (measured: docs/design.md, "Compiling the merge's later kernels during the registration")."""
 
+def _precompile_fuse(m1: OccupancyMap, m2_in_1: OccupancyMap) -> None:
+    with contextlib.suppress(Exception):  # work ahead: the real merge reports its own errors
+        precompile_fuse(m1, m2_in_1)
+
+
 @contextlib.contextmanager
 def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig):
     """Within the block (one ``merge`` of ``m1`` and ``m2`` with ``config``), the first time the
     registration compiles a stored kernel afresh (``kernel_store.compile_listener``: only with
     the kernel store open and the program in neither the process nor the store), a second
-    thread runs the rest of the merge (``transform_and_fuse``) from ``T_1_2`` ((4, 4); the
-    guess; ``None``: once ``register_global`` has published its best screened pose,
-    ``pipeline.candidate_listener``) and drops its result; then it compiles (without running)
+    thread runs the rest of the merge (``transform_to_frame_1``, then ``fuse_in_frame_1`` while a
+    third thread compiles the fusion's second program, ``fusion.precompile_fuse``) from
+    ``T_1_2`` ((4, 4); the guess; ``None``: once ``register_global`` has published its best
+    screened pose, ``pipeline.candidate_listener``) and drops its result; then it compiles (without running)
     the GICP polish's program for that pose (``pipeline.refine.precompile_polish``; run there, it
     hung: ``docs/design.md``, "Compiling the merge's later kernels during the registration").
     Its programs' shapes are bucketed, so they are the ones the real merge needs unless the
@@ -50,7 +57,15 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
 
     def work(T):
         with memory_budget(budget), contextlib.suppress(Exception):
-            jax.block_until_ready(transform_and_fuse(m1, m2, T, config, Timings())[1:])
+            m2_in_1 = transform_to_frame_1(m2, T, config, Timings())
+            # the fusion's second program compiles beside its first, on the core the registration frees
+            beside = threading.Thread(target=_precompile_fuse, args=(m1, m2_in_1), name="octomerge-compile-beside",
+                                      daemon=True)
+            beside.start()
+            try:
+                jax.block_until_ready(fuse_in_frame_1(m1, m2_in_1, config, Timings()))
+            finally:
+                beside.join()
             precompile_polish(m1, m2, T, config)
 
     def start():

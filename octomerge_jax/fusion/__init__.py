@@ -65,13 +65,13 @@ from .. import morton
 from .._ops import is_traced, to_device
 from ..map import OccupancyMap
 from ._many import fuse_maps
-from ._pair import fuse_pair
+from ._pair import fuse_pair, precompile_emit_pair
 from ._report import FuseReport, FuseResult
 from ._rules import MODE, RULES, check_rule, check_weights
 from ._sizing import default_gap_capacity, default_gap_leaves
 
 __all__ = ["RULES", "FuseReport", "FuseResult", "fuse", "fuse_many", "fuse_with_report",
-           "fuse_many_with_report", "default_gap_capacity", "default_gap_leaves"]
+           "fuse_many_with_report", "default_gap_capacity", "default_gap_leaves", "precompile_fuse"]
 
 
 def _check_maps(maps: Sequence[OccupancyMap], names):
@@ -119,6 +119,17 @@ def fuse_with_report(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, w
     w1, w2 = (to_device(w, np.float32) for w in weights)
     mode = to_device(MODE[rule], np.int32)
     return FuseResult(*fuse_pair(m1, m2, w1, w2, mode, capacity, prune, gap_capacity, "fuse"))
+
+
+def precompile_fuse(m1: OccupancyMap, m2: OccupancyMap, *, prune: bool = True, gap_capacity: int | None = None) -> bool:
+    """Make ready, without running anything, the program that lays out ``fuse(m1, m2, prune=prune,
+    gap_capacity=gap_capacity)``'s output on the host (its second phase; sized by counting
+    the common refinement on the host), loaded from or compiled into the open kernel store.
+    A thread beside one that calls ``fuse`` on the same maps makes the two phases compile side
+    by side (the command line's work ahead). Returns ``False`` (nothing done) without an open
+    store. Raises as ``fuse`` for maps it cannot fuse."""
+    _check_maps([m1, m2], ["m1", "m2"])
+    return precompile_emit_pair(m1, m2, bool(prune), gap_capacity)
 
 
 def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0, 1.0),

@@ -30,7 +30,7 @@ from ._gaps import gap_cell_once
 from ._layout import Cells, cell_owners, excl_at, put_selfs
 from ._report import FuseReport
 from ._sides import GapList, Pair, SideStats, gap_entries, pair_sides, to_leaves
-from ._sizing import default_gap_capacity, default_gap_leaves, sized_gaps, sized_output
+from ._sizing import default_gap_capacity, default_gap_leaves, refinement_cells, sized_gaps, sized_output
 
 
 class PairPlan(NamedTuple):
@@ -214,9 +214,28 @@ def fuse_pair_planned(m1: OccupancyMap, m2: OccupancyMap, w1, w2, mode, do_prune
         if not missed:
             break
         rows = bucket_capacity(rows + missed)
+    return emit_pair(plan, m1, m2, *_emit_rows(total, gap_cells), do_prune)
+
+
+def _emit_rows(total: int, gap_cells: int) -> tuple[int, int]:
+    """``emit_pair``'s ``(capacity, cell_rows)`` for a refinement of ``total`` cells of which
+    ``gap_cells`` are gap cells: the refinement's own bucket, and room for all its gap cells."""
     cap = bucket_capacity(total)
-    cell_rows = max(default_gap_capacity(cap) or cap, bucket_capacity(gap_cells))
-    return emit_pair(plan, m1, m2, cap, min(cell_rows, cap), do_prune)
+    return cap, min(max(default_gap_capacity(cap) or cap, bucket_capacity(gap_cells)), cap)
+
+
+def precompile_emit_pair(m1: OccupancyMap, m2: OccupancyMap, do_prune: bool, gap_capacity: int | None = None) -> bool:
+    """Make ready, without running anything, the second-phase program (``emit_pair``) that
+    ``fuse_pair_planned`` runs for ``m1`` and ``m2`` (checked maps of one resolution): its sizes
+    from the refinement counted on the host (``refinement_cells``), the plan's shapes from
+    ``plan_pair``'s abstract evaluation. Meant for a thread beside one that fuses the pair, so
+    the two phases compile side by side. Returns ``False`` (nothing done) without an open
+    kernel store (``kernel_store.StoredJit.precompile``)."""
+    n_in = m1.capacity + m2.capacity
+    rows = min(gap_capacity or default_gap_leaves(bucket_capacity(max(int(m1.count), int(m2.count)))), n_in)
+    weight, mode = jax.ShapeDtypeStruct((), jnp.float32), jax.ShapeDtypeStruct((), jnp.int32)
+    plan = plan_pair.eval_shape(m1, m2, weight, weight, mode, gap_rows=rows)
+    return emit_pair.precompile(plan, m1, m2, *_emit_rows(*refinement_cells(m1, m2)), bool(do_prune))
 
 
 def fuse_pair(m1, m2, w1, w2, mode, capacity: int | None, prune: bool, gap_capacity: int | None,

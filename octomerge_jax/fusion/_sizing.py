@@ -6,6 +6,9 @@ that re-run a kernel larger when a list proved short. Why these sizes: ``docs/de
 
 from __future__ import annotations
 
+import numpy as np
+
+from .. import morton
 from .._ops import bucket_capacity
 from ..budget import check_allocation
 
@@ -90,3 +93,52 @@ def sized_output(run, guess: int, capacity: int | None, traced: bool, what: str)
 def _check_rows(cap: int, what: str) -> None:
     """``budget.check_allocation`` for an output of ``cap`` rows (``ROW_BYTES`` each)."""
     check_allocation(cap * ROW_BYTES, f"{what}: the union of the maps' leaves ({cap} rows)")
+
+
+
+def _host_leaves(m) -> tuple[np.ndarray, np.ndarray]:
+    """A map's leaves on the host: ``(codes (n,) int64, depths (n,) int64)``, in Morton order."""
+    n = int(m.count)
+    return morton.join_codes(np.asarray(m.code)[:n]).astype(np.int64), np.asarray(m.depth)[:n].astype(np.int64)
+
+
+def _split_leaves(codes, depths, codes_b, depths_b) -> tuple[int, int, int]:
+    """The leaves ``(codes, depths)`` of one map strictly inside a coarser leaf of the other map
+    ``(codes_b, depths_b)`` (both sorted): ``(how many coarse leaves hold them, how many they
+    are, the cells those coarse leaves split into)``. Inside a coarse leaf the cells are the
+    leaves of the smallest tree holding the finer leaves, 1 + 7 per internal node, and the
+    internal nodes are the finer leaves' distinct ancestors from the coarse leaf's depth down."""
+    if len(codes) == 0 or len(codes_b) == 0:
+        return 0, 0, 0
+    j = np.clip(np.searchsorted(codes_b, codes, side="right") - 1, 0, len(codes_b) - 1)
+    end = codes_b[j] + (np.int64(1) << (3 * (morton.TREE_DEPTH - depths_b[j])))
+    inside = (codes >= codes_b[j]) & (codes < end) & (depths_b[j] < depths)
+    fine, fine_depth, coarse_depth = codes[inside], depths[inside], depths_b[j[inside]]
+    split = len(np.unique(j[inside]))
+    internal = 0
+    for depth in range(morton.TREE_DEPTH):
+        at = (fine_depth > depth) & (coarse_depth <= depth)
+        if at.any():
+            node = fine[at] >> (3 * (morton.TREE_DEPTH - depth))  # sorted: count the changes
+            internal += 1 + int(np.count_nonzero(node[1:] != node[:-1]))
+    return split, len(fine), split + 7 * internal
+
+
+def refinement_cells(m1, m2) -> tuple[int, int]:
+    """The cells of two maps' common refinement and how many of them are gap cells, counted on
+    the host from their leaves in ``O(n log n)`` (``plan_pair`` counts them on the device as
+    ``total`` and ``gap_cells``): ``(cells, gap cells)``. Leaves of equal code and depth make
+    one cell; a leaf inside a coarser leaf of the other map splits that leaf into the leaves of
+    the smallest tree holding every finer leaf inside it, and those no finer leaf fills are gap
+    cells (thesis §5.2.3, case 1 inside cases 3 / 4)."""
+    (c1, d1), (c2, d2) = _host_leaves(m1), _host_leaves(m2)
+    k1, k2 = c1 * 32 + d1, c2 * 32 + d2  # unique and sorted: the leaves of a map are disjoint
+    shared = 0
+    if len(k1) and len(k2):
+        shared = int(np.count_nonzero(k1[np.clip(np.searchsorted(k1, k2), 0, len(k1) - 1)] == k2))
+    cells, gaps = len(c1) + len(c2) - shared, 0
+    for side in ((c1, d1, c2, d2), (c2, d2, c1, d1)):
+        split, fine, split_cells = _split_leaves(*side)
+        cells += split_cells - split - fine  # the coarse leaf's cells replace it and the finer leaves
+        gaps += split_cells - fine
+    return cells, gaps

@@ -10,7 +10,8 @@ from .config_file import dumps_toml, load_config, save_config
 from .globalreg import candidate_listener, judge_local, register_global
 from .many import merge_many
 from .many_report import EdgeReport, ManyReport, MapReport
-from .merging import check_resolutions, merge, resample_to_resolution, transform_and_fuse, transform_from_xyz_rpy
+from .merging import (check_resolutions, fuse_in_frame_1, merge, resample_to_resolution, transform_and_fuse,
+                      transform_from_xyz_rpy, transform_to_frame_1)
 from .ranking import rank_by_map_agreement
 from .refine import dense_after_global, polish, register
 from .report import MergeError, MergeReport, Registration
@@ -27,5 +28,5 @@ __all__ = [
     "point_stats", "polish",
     "rank_by_map_agreement", "register", "register_global", "resample_to_resolution", "save_config",
     "transform_and_fuse", "transform_from_xyz_rpy", "validate",
-    "candidate_listener", "stage_listener",  # --- the command line (work ahead, progress)
+    "candidate_listener", "fuse_in_frame_1", "stage_listener", "transform_to_frame_1",  # --- the command line
 ]

@@ -38,7 +38,7 @@ from .refine import register
 from .report import MergeError, MergeReport, Registration
 from .timings import Timings
 
-__all__ = ["check_resolutions", "check_transform", "config_with_overrides", "merge", "pair_report",
+__all__ = ["check_resolutions", "check_transform", "config_with_overrides", "fuse_in_frame_1", "merge", "pair_report",
            "resample_to_resolution", "transform_and_fuse", "transform_from_xyz_rpy", "transform_to_frame_1"]
 
 
@@ -154,10 +154,15 @@ def transform_and_fuse(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeC
     (stage ``fuse``). Returns ``(map 2 in frame 1, merged map, FuseReport)``. Raises
     ``MergeError("transform")``."""
     m2_in_1 = transform_to_frame_1(m2, T_1_2, config, timings)
+    return (m2_in_1, *fuse_in_frame_1(m1, m2_in_1, config, timings))
+
+
+def fuse_in_frame_1(m1: OccupancyMap, m2_in_1: OccupancyMap, config: MergeConfig, timings: Timings):
+    """Map 2, already in map 1's frame, fused into map 1 by ``config.fuse`` (thesis Alg. 8;
+    stage ``fuse``): ``(merged map, FuseReport)``."""
     weights = tuple(config.fuse.weights[:2]) if len(config.fuse.weights) >= 2 else (1.0, 1.0)
     with timings.stage("fuse") as stage:
-        merged, frep = stage.ready(fuse_with_report(m1, m2_in_1, config.fuse.rule, weights=weights))
-    return m2_in_1, merged, frep
+        return tuple(stage.ready(fuse_with_report(m1, m2_in_1, config.fuse.rule, weights=weights)))
 
 
 def pair_report(m1: OccupancyMap, m2: OccupancyMap, registration: Registration, T_1_2_init, T_1_2_true,
