@@ -350,6 +350,12 @@ class StoredJit:
         those taken from the store): a call that does not raise it compiled nothing."""
         return self.jitted._cache_size() + len(self._loaded)
 
+    def eval_shape(self, *args, **kwargs):
+        """``jax.ShapeDtypeStruct``s of a call's result (arrays may be given as
+        ``jax.ShapeDtypeStruct``), by the trace the store's programs compile from: compiling
+        these shapes afterwards does not trace the function again."""
+        return self._for_store.eval_shape(*args, **kwargs)
+
     def __getattr__(self, name):
         if name == "jitted":
             raise AttributeError(name)

@@ -95,7 +95,9 @@ def calls(monkeypatch):
 def beside(monkeypatch):
     """The threads that compiled the fusion's second program ahead (``fusion.precompile_fuse``)."""
     seen = []
-    monkeypatch.setattr(ahead, "precompile_fuse", lambda m1, m2_in_1: seen.append(threading.current_thread().name))
+    monkeypatch.setattr(ahead, "fuse_plan_shapes", lambda m1, m2_in_1: None)
+    monkeypatch.setattr(ahead, "precompile_fuse",
+                        lambda m1, m2_in_1, shapes: seen.append(threading.current_thread().name))
     return seen
 
 

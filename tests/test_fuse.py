@@ -302,7 +302,7 @@ def test_precompile_fuse_readies_the_program_fuse_lays_out_with():
     the second program a host ``fuse`` of the pair runs, so the fuse compiles none."""
     m1, m2 = pair(7, capacity=1 << 13)  # a capacity of this test's own: its programs are new
     before = _pair.emit_pair.programs()
-    if not F.precompile_fuse(m1, m2):
+    if not F.precompile_fuse(m1, m2, F.fuse_plan_shapes(m1, m2)):
         pytest.skip("no kernel store open (OCTOMERGE_TEST_CACHE_DIR=off)")
     ready = _pair.emit_pair.programs()
     assert ready == before + 1

@@ -13,7 +13,7 @@ import numpy as np
 from ..budget import current_budget, memory_budget
 from ..kernel_store import compile_listener
 from ..map import OccupancyMap
-from ..fusion import precompile_fuse
+from ..fusion import fuse_plan_shapes, precompile_fuse
 from ..pipeline import MergeConfig, Timings, candidate_listener, fuse_in_frame_1, transform_to_frame_1
 from ..pipeline.refine import precompile_polish
 
@@ -27,9 +27,9 @@ BYTES_PER_ROW = 512
 """The work ahead's peak memory per leaf row of the two maps' capacities [bytes], compiling
 included (measured: docs/design.md, "Compiling the merge's later kernels during the registration")."""
 
-def _precompile_fuse(m1: OccupancyMap, m2_in_1: OccupancyMap) -> None:
+def _precompile_fuse(m1: OccupancyMap, m2_in_1: OccupancyMap, plan_shapes) -> None:
     with contextlib.suppress(Exception):  # work ahead: the real merge reports its own errors
-        precompile_fuse(m1, m2_in_1)
+        precompile_fuse(m1, m2_in_1, plan_shapes)
 
 
 @contextlib.contextmanager
@@ -58,9 +58,11 @@ def compile_ahead(m1: OccupancyMap, m2: OccupancyMap, T_1_2, config: MergeConfig
     def work(T):
         with memory_budget(budget), contextlib.suppress(Exception):
             m2_in_1 = transform_to_frame_1(m2, T, config, Timings())
-            # the fusion's second program compiles beside its first, on the core the registration frees
-            beside = threading.Thread(target=_precompile_fuse, args=(m1, m2_in_1), name="octomerge-compile-beside",
-                                      daemon=True)
+            # the fusion's second program compiles beside its first, on the core the registration frees; the
+            # first one's trace (its shapes, which the second takes) once, here, before the fuse compiles from it
+            shapes = fuse_plan_shapes(m1, m2_in_1)
+            beside = threading.Thread(target=_precompile_fuse, args=(m1, m2_in_1, shapes),
+                                      name="octomerge-compile-beside", daemon=True)
             beside.start()
             try:
                 jax.block_until_ready(fuse_in_frame_1(m1, m2_in_1, config, Timings()))

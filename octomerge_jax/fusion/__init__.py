@@ -65,13 +65,14 @@ from .. import morton
 from .._ops import is_traced, to_device
 from ..map import OccupancyMap
 from ._many import fuse_maps
-from ._pair import fuse_pair, precompile_emit_pair
+from ._pair import fuse_pair, plan_shapes, precompile_emit_pair
 from ._report import FuseReport, FuseResult
 from ._rules import MODE, RULES, check_rule, check_weights
 from ._sizing import default_gap_capacity, default_gap_leaves
 
 __all__ = ["RULES", "FuseReport", "FuseResult", "fuse", "fuse_many", "fuse_with_report",
-           "fuse_many_with_report", "default_gap_capacity", "default_gap_leaves", "precompile_fuse"]
+           "fuse_many_with_report", "default_gap_capacity", "default_gap_leaves", "fuse_plan_shapes",
+           "precompile_fuse"]
 
 
 def _check_maps(maps: Sequence[OccupancyMap], names):
@@ -121,15 +122,24 @@ def fuse_with_report(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, w
     return FuseResult(*fuse_pair(m1, m2, w1, w2, mode, capacity, prune, gap_capacity, "fuse"))
 
 
-def precompile_fuse(m1: OccupancyMap, m2: OccupancyMap, *, prune: bool = True, gap_capacity: int | None = None) -> bool:
-    """Make ready, without running anything, the program that lays out ``fuse(m1, m2, prune=prune,
-    gap_capacity=gap_capacity)``'s output on the host (its second phase; sized by counting
-    the common refinement on the host), loaded from or compiled into the open kernel store.
-    A thread beside one that calls ``fuse`` on the same maps makes the two phases compile side
-    by side (the command line's work ahead). Returns ``False`` (nothing done) without an open
-    store. Raises as ``fuse`` for maps it cannot fuse."""
+def fuse_plan_shapes(m1: OccupancyMap, m2: OccupancyMap, *, gap_capacity: int | None = None):
+    """The shapes of the first phase a host ``fuse(m1, m2, gap_capacity=gap_capacity)`` computes
+    (a pytree of ``jax.ShapeDtypeStruct``), by abstract evaluation through the trace the phase's
+    program compiles from: the fuse that follows does not trace it again. For
+    ``precompile_fuse``. Raises as ``fuse`` for maps it cannot fuse."""
     _check_maps([m1, m2], ["m1", "m2"])
-    return precompile_emit_pair(m1, m2, bool(prune), gap_capacity)
+    return plan_shapes(m1, m2, gap_capacity)
+
+
+def precompile_fuse(m1: OccupancyMap, m2: OccupancyMap, plan_shapes, *, prune: bool = True) -> bool:
+    """Make ready, without running anything, the program that lays out a host ``fuse(m1, m2,
+    prune=prune)``'s output (its second phase, sized by counting the common refinement on the
+    host) after a first phase of ``plan_shapes`` (``fuse_plan_shapes``), loaded from or
+    compiled into the open kernel store. A thread beside one that calls ``fuse`` on the same
+    maps makes the two phases compile side by side (the command line's work ahead). Returns
+    ``False`` (nothing done) without an open store. Raises as ``fuse`` for maps it cannot fuse."""
+    _check_maps([m1, m2], ["m1", "m2"])
+    return precompile_emit_pair(m1, m2, bool(prune), plan_shapes)
 
 
 def fuse(m1: OccupancyMap, m2: OccupancyMap, rule: str = "sum", *, weights=(1.0, 1.0),

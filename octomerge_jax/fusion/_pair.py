@@ -224,17 +224,22 @@ def _emit_rows(total: int, gap_cells: int) -> tuple[int, int]:
     return cap, min(max(default_gap_capacity(cap) or cap, bucket_capacity(gap_cells)), cap)
 
 
-def precompile_emit_pair(m1: OccupancyMap, m2: OccupancyMap, do_prune: bool, gap_capacity: int | None = None) -> bool:
-    """Make ready, without running anything, the second-phase program (``emit_pair``) that
-    ``fuse_pair_planned`` runs for ``m1`` and ``m2`` (checked maps of one resolution): its sizes
-    from the refinement counted on the host (``refinement_cells``), the plan's shapes from
-    ``plan_pair``'s abstract evaluation. Meant for a thread beside one that fuses the pair, so
-    the two phases compile side by side. Returns ``False`` (nothing done) without an open
-    kernel store (``kernel_store.StoredJit.precompile``)."""
+def plan_shapes(m1: OccupancyMap, m2: OccupancyMap, gap_capacity: int | None = None) -> PairPlan:
+    """The shapes of the ``plan_pair`` result ``fuse_pair_planned`` computes first for ``m1`` and
+    ``m2`` (a ``PairPlan`` of ``jax.ShapeDtypeStruct``), by the trace its program compiles from."""
     n_in = m1.capacity + m2.capacity
     rows = min(gap_capacity or default_gap_leaves(bucket_capacity(max(int(m1.count), int(m2.count)))), n_in)
     weight, mode = jax.ShapeDtypeStruct((), jnp.float32), jax.ShapeDtypeStruct((), jnp.int32)
-    plan = plan_pair.eval_shape(m1, m2, weight, weight, mode, gap_rows=rows)
+    return plan_pair.eval_shape(m1, m2, weight, weight, mode, gap_rows=rows)
+
+
+def precompile_emit_pair(m1: OccupancyMap, m2: OccupancyMap, do_prune: bool, plan: PairPlan) -> bool:
+    """Make ready, without running anything, the second-phase program (``emit_pair``) that
+    ``fuse_pair_planned`` runs for ``m1`` and ``m2`` (checked maps of one resolution) after a
+    first phase of shapes ``plan`` (``plan_shapes``): its sizes from the refinement counted on
+    the host (``refinement_cells``). Meant for a thread beside one that fuses the pair, so the
+    two phases compile side by side. Returns ``False`` (nothing done) without an open kernel
+    store (``kernel_store.StoredJit.precompile``)."""
     return emit_pair.precompile(plan, m1, m2, *_emit_rows(*refinement_cells(m1, m2)), bool(do_prune))
 
 
