@@ -504,7 +504,8 @@ def _demo_lab():
     return m1, m2, T, perturbed_guess(T, d.error_xyz, d.error_rpy_rad)
 
 
-def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():  # simulates the demo's lab (~15 s), merges twice
+@pytest.mark.slow  # the demo's lab, two merges (40-46 s); fast: the quarter-voxel test on the room
+def test_icp_plus_dense_improves_on_icp_on_the_demo_lab():
     """``octomerge demo``'s job with ``refine="icp+dense"``: the dense alignment, started at the
     level of ICP's last correspondence distance, brings ICP's result (0.106 m) within a quarter
     voxel (0.020 m measured). Run from the coarsest level it had carried ICP's result 0.33 m /
