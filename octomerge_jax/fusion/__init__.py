@@ -68,11 +68,11 @@ from ._many import fuse_maps
 from ._pair import fuse_pair, plan_shapes, precompile_emit_pair
 from ._report import FuseReport, FuseResult
 from ._rules import MODE, RULES, check_rule, check_weights
-from ._sizing import default_gap_capacity, default_gap_leaves
+from ._sizing import default_gap_capacity, default_gap_leaves, refinement_cells
 
 __all__ = ["RULES", "FuseReport", "FuseResult", "fuse", "fuse_many", "fuse_with_report",
            "fuse_many_with_report", "default_gap_capacity", "default_gap_leaves", "fuse_plan_shapes",
-           "precompile_fuse"]
+           "precompile_fuse", "refinement_cells"]
 
 
 def _check_maps(maps: Sequence[OccupancyMap], names):
