@@ -351,7 +351,8 @@ def insert_point_cloud(m: OccupancyMap, points, sensor_origin, max_range: float 
       points: ``(n, 3)`` end points [m] in the map frame.
       sensor_origin: ``(3,)`` sensor position [m] in the map frame.
       max_range: maximum ray length [m]; longer rays are cut and not counted as hits.
-      plan: optional ``CapacityPlan`` shared by the scans of a run (fewer compilations).
+      plan: optional ``CapacityPlan`` shared by the scans of a run (fewer compilations; the
+        map then grows with headroom, as in ``insert_point_clouds``).
 
     Returns the updated map (pruned maximally; capacity grows to the next bucket if needed).
     Every traversed voxel gets one ``miss_log_odds``, every end voxel one ``hit_log_odds``
@@ -379,8 +380,10 @@ def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: floa
       batch_size: scans whose updates are applied together.
       plan: optional ``CapacityPlan`` shared with other calls of the run (default: one sized
         from these scans). The map starts at the capacity the run reached and grows with
-        headroom while the scans go in; the result is trimmed to ``bucket_capacity`` of its
-        leaves (never below the capacity it came with).
+        headroom while the scans go in. Without a ``plan`` the result is trimmed to
+        ``bucket_capacity`` of its leaves (never below the capacity it came with); with one it
+        keeps the run's capacity, so the run's next call neither copies nor recompiles (trim
+        with ``m.with_capacity(bucket_capacity(m.num_leaves))`` at the end of the run).
 
     Returns the updated map. Raises ``ValueError`` for malformed arguments.
     """
@@ -390,7 +393,8 @@ def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: floa
         raise ValueError(f"clouds and sensor_origins differ in length: {len(clouds)} vs {len(origins)}")
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-    if plan is None:
+    own_plan = plan is None
+    if own_plan:
         plan = CapacityPlan()
         for pts, o in zip(clouds, origins):
             plan.reserve(pts, o, m.resolution, max_range)
@@ -417,5 +421,7 @@ def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: floa
         w[:n] = np.concatenate(words)
         d[:n] = np.concatenate(deltas)
         m = apply_voxel_updates(m, to_device(w), to_device(d), to_device(np.arange(cap) < n), sizes=plan)
+    if not own_plan:
+        return m
     trimmed = max(capacity, bucket_capacity(m.num_leaves))  # the headroom of the updates removed
     return m.with_capacity(trimmed) if trimmed < m.capacity else m

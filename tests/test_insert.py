@@ -168,18 +168,19 @@ def test_no_recompile_same_bucket():
 def test_a_shared_plan_compiles_the_tree_updates_once_per_run(lab_scans):
     """Maps of one run sharing a ``CapacityPlan`` (as the two robots of ``sim.make_two_robot_maps``
     do): the later map starts at the capacity and work sizes the earlier one reached, so its
-    updates compile nothing; its leaves are those of inserting without a plan, and the headroom
-    the updates grew with is trimmed off the result."""
+    updates compile nothing; its leaves are those of inserting without a plan. With the run's
+    plan a map keeps the headroom its updates grew with; without one it is trimmed off."""
     clouds, origins = lab_scans
     res = 0.05
     plan = insert.CapacityPlan()
     first = insert.insert_point_clouds(empty(res), clouds, origins, batch_size=1, plan=plan)
-    assert plan.leaves > first.capacity == insert.bucket_capacity(first.num_leaves)
+    assert first.capacity == plan.leaves > insert.bucket_capacity(first.num_leaves)
     programs = (tree._apply_updates.programs(), tree._plan_splits.programs())
     second = insert.insert_point_clouds(empty(res), clouds, origins, batch_size=1, plan=plan)
     assert (tree._apply_updates.programs(), tree._plan_splits.programs()) == programs
     assert tree.equal(second, first) and second.capacity == first.capacity
-    assert tree.equal(first, insert.insert_point_clouds(empty(res), clouds, origins, batch_size=1))
+    alone = insert.insert_point_clouds(empty(res), clouds, origins, batch_size=1)
+    assert tree.equal(first, alone) and alone.capacity == insert.bucket_capacity(alone.num_leaves)
 
 
 def test_bad_arguments():

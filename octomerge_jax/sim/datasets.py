@@ -13,6 +13,7 @@ import dataclasses
 
 import numpy as np
 
+from .._ops import bucket_capacity
 from ..insert import CapacityPlan, insert_point_clouds
 from ..map import OccupancyMap, OccupancyParams, empty
 from .scenes import Scene, make_scene
@@ -53,12 +54,15 @@ def build_map(scans, poses_map_sensor, resolution: float, max_range: float = -1.
               params: OccupancyParams | None = None, *, plan: CapacityPlan | None = None) -> OccupancyMap:
     """Insert sensor-frame scans ``(n_i, 3)`` [m] at their poses ``(N, 4, 4)`` (OctoMap
     ``insertPointCloud`` per scan). ``plan``: a ``CapacityPlan`` shared with other maps of
-    the run (reserved for these scans here); default one of their own."""
+    the run (reserved for these scans here); default one of their own. The map's capacity is
+    its leaves' bucket."""
     clouds, origins = _map_clouds(scans, poses_map_sensor)
     if plan is not None:
         for pts, o in zip(clouds, origins):
             plan.reserve(pts, o, resolution, max_range)
-    return insert_point_clouds(empty(resolution, params), clouds, origins, max_range, plan=plan)
+    m = insert_point_clouds(empty(resolution, params), clouds, origins, max_range, plan=plan)
+    trimmed = bucket_capacity(m.num_leaves)  # the headroom the run's updates grew with
+    return m.with_capacity(trimmed) if trimmed < m.capacity else m
 
 
 def simulate_runs(scene="lab", *, sensor=None, spacing: float | None = None, yaw_2_rad: float = np.pi / 4,
