@@ -27,6 +27,7 @@ BYTES_PER_ROW = 512
 """The work ahead's peak memory per leaf row of the two maps' capacities [bytes], compiling
 included (measured: docs/design.md, "Compiling the merge's later kernels during the registration")."""
 
+
 def _precompile_fuse(m1: OccupancyMap, m2_in_1: OccupancyMap, plan_shapes) -> None:
     with contextlib.suppress(Exception):  # work ahead: the real merge reports its own errors
         precompile_fuse(m1, m2_in_1, plan_shapes)

@@ -1,7 +1,8 @@
 """The capacity policies of fusion, in one place: how many rows the output, the lists of gap
 cells and of leaves with gaps, and ``fuse_many``'s boundary lists get, and the host loops
-that re-run a kernel larger when a list proved short. Why these sizes: ``docs/design.md``,
-"Gap-cell lists" and "Bucket sizing of the output".
+that re-run a kernel larger when a list proved short, and the host count of the common
+refinement that sizes the output before the device counts it. Why these sizes:
+``docs/design.md``, "Gap-cell lists" and "Bucket sizing of the output".
 """
 
 from __future__ import annotations
@@ -95,7 +96,6 @@ def _check_rows(cap: int, what: str) -> None:
     check_allocation(cap * ROW_BYTES, f"{what}: the union of the maps' leaves ({cap} rows)")
 
 
-
 def _host_leaves(m) -> tuple[np.ndarray, np.ndarray]:
     """A map's leaves on the host: ``(codes (n,) int64, depths (n,) int64)``, in Morton order."""
     n = int(m.count)
@@ -130,7 +130,10 @@ def refinement_cells(m1, m2) -> tuple[int, int]:
     ``total`` and ``gap_cells``): ``(cells, gap cells)``. Leaves of equal code and depth make
     one cell; a leaf inside a coarser leaf of the other map splits that leaf into the leaves of
     the smallest tree holding every finer leaf inside it, and those no finer leaf fills are gap
-    cells (thesis §5.2.3, case 1 inside cases 3 / 4)."""
+    cells (thesis §5.2.3, case 1 inside cases 3 / 4). Raises ``budget.MemoryBudgetError`` when
+    its host arrays (about 64 bytes per leaf) would pass the memory budget."""
+    check_allocation((int(m1.count) + int(m2.count)) * 64,
+                     f"counting the common refinement of {int(m1.count)} + {int(m2.count)} leaves on the host")
     (c1, d1), (c2, d2) = _host_leaves(m1), _host_leaves(m2)
     k1, k2 = c1 * 32 + d1, c2 * 32 + d2  # unique and sorted: the leaves of a map are disjoint
     shared = 0
