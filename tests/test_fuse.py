@@ -631,7 +631,7 @@ def test_scanned_octomap_trees_against_octomap_updates(tmp_path):
 def test_return_report_still_works_with_a_deprecation_warning():
     """``fuse(..., return_report=True)`` (earlier releases) returns ``fuse_with_report``'s
     ``FuseResult`` and warns; the plain call returns the map alone."""
-    m1, m2 = om.example_map(), om.transform_map(om.example_map(), np.asarray(om.from_xyz_rpy(0.1, 0, 0, 0, 0, 0)))
+    m1, m2 = pair(5)  # test_padding_invariance's pair: its programs
     with pytest.warns(DeprecationWarning, match="fuse_with_report"):
         merged, report = F.fuse(m1, m2, return_report=True)
     ref = F.fuse_with_report(m1, m2)
