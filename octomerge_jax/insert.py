@@ -383,7 +383,7 @@ def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: floa
         headroom while the scans go in. Without a ``plan`` the result is trimmed to
         ``bucket_capacity`` of its leaves (never below the capacity it came with); with one it
         keeps the run's capacity, so the run's next call neither copies nor recompiles (trim
-        with ``m.with_capacity(bucket_capacity(m.num_leaves))`` at the end of the run).
+        with ``m.trimmed()`` at the end of the run).
 
     Returns the updated map. Raises ``ValueError`` for malformed arguments.
     """
@@ -421,7 +421,4 @@ def insert_point_clouds(m: OccupancyMap, clouds, sensor_origins, max_range: floa
         w[:n] = np.concatenate(words)
         d[:n] = np.concatenate(deltas)
         m = apply_voxel_updates(m, to_device(w), to_device(d), to_device(np.arange(cap) < n), sizes=plan)
-    if not own_plan:
-        return m
-    trimmed = max(capacity, bucket_capacity(m.num_leaves))  # the headroom of the updates removed
-    return m.with_capacity(trimmed) if trimmed < m.capacity else m
+    return m.trimmed(capacity) if own_plan else m  # the headroom of the updates removed

@@ -205,6 +205,12 @@ class OccupancyMap:
         return from_words(np.asarray(self.code)[:n], np.asarray(self.depth)[:n],
                           np.asarray(self.log_odds)[:n], self.resolution, self.params, capacity)
 
+    def trimmed(self, minimum: int = 0) -> "OccupancyMap":
+        """The same map at the capacity ``max(minimum, bucket_capacity(num_leaves))``: itself
+        when that is not smaller than its own (padding rows dropped on the host otherwise)."""
+        capacity = max(int(minimum), bucket_capacity(self.num_leaves))
+        return self.with_capacity(capacity) if capacity < self.capacity else self
+
     def __repr__(self) -> str:  # the default would print whole arrays
         try:
             n = self.num_leaves

@@ -485,7 +485,7 @@ def from_voxels(centers, log_odds, resolution: float, depth: int = _D,
     if not prune_result:
         return m
     pruned = prune(m)
-    return pruned.with_capacity(bucket_capacity(pruned.num_leaves))
+    return pruned.trimmed()
 
 
 # ----------------------------------------------------------------------------- coarsening

@@ -181,6 +181,8 @@ def test_a_shared_plan_compiles_the_tree_updates_once_per_run(lab_scans):
     assert tree.equal(second, first) and second.capacity == first.capacity
     alone = insert.insert_point_clouds(empty(res), clouds, origins, batch_size=2)  # test_batched_equals_sequential's
     assert tree.equal(first, alone) and alone.capacity == insert.bucket_capacity(alone.num_leaves)
+    trimmed = first.trimmed()  # the run's end
+    assert tree.equal(trimmed, first) and trimmed.capacity == alone.capacity and alone.trimmed() is alone
 
 
 def test_bad_arguments():

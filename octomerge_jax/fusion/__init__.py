@@ -65,7 +65,7 @@ from .. import morton
 from .._ops import is_traced, to_device
 from ..map import OccupancyMap
 from ._many import fuse_maps
-from ._pair import fuse_pair, plan_shapes, precompile_emit_pair
+from ._pair import fuse_pair, plan_pair_shapes, precompile_emit_pair
 from ._report import FuseReport, FuseResult
 from ._rules import MODE, RULES, check_rule, check_weights
 from ._sizing import default_gap_capacity, default_gap_leaves, refinement_cells
@@ -128,7 +128,7 @@ def fuse_plan_shapes(m1: OccupancyMap, m2: OccupancyMap, *, gap_capacity: int | 
     program compiles from: the fuse that follows does not trace it again. For
     ``precompile_fuse``. Raises as ``fuse`` for maps it cannot fuse."""
     _check_maps([m1, m2], ["m1", "m2"])
-    return plan_shapes(m1, m2, gap_capacity)
+    return plan_pair_shapes(m1, m2, gap_capacity)
 
 
 def precompile_fuse(m1: OccupancyMap, m2: OccupancyMap, plan_shapes, *, prune: bool = True) -> bool:

@@ -206,15 +206,20 @@ def fuse_pair_planned(m1: OccupancyMap, m2: OccupancyMap, w1, w2, mode, do_prune
     output, ``n_max = max(n1, n2)`` cells, and is re-planned larger when it is short).
     Returns ``(map, FuseReport)``."""
     n_in = m1.capacity + m2.capacity
-    rows = gap_capacity or default_gap_leaves(bucket_capacity(n_max))
+    rows = _first_gap_rows(gap_capacity, n_max, n_in)
     while True:
-        rows = min(rows or n_in, n_in)
         plan = plan_pair(m1, m2, w1, w2, mode, gap_rows=rows)
         missed, total, gap_cells = (int(x) for x in jax.device_get((plan.g.missed, plan.total, plan.gap_cells)))
         if not missed:
             break
-        rows = bucket_capacity(rows + missed)
+        rows = min(bucket_capacity(rows + missed), n_in)
     return emit_pair(plan, m1, m2, *_emit_rows(total, gap_cells), do_prune)
+
+
+def _first_gap_rows(gap_capacity: int | None, n_max: int, n_in: int) -> int:
+    """``plan_pair``'s first ``gap_rows``: ``gap_capacity``, else ``default_gap_leaves`` of the
+    smallest possible output (``n_max = max(n1, n2)`` cells), at most the inputs' ``n_in`` rows."""
+    return min(gap_capacity or default_gap_leaves(bucket_capacity(n_max)), n_in)
 
 
 def _emit_rows(total: int, gap_cells: int) -> tuple[int, int]:
@@ -224,11 +229,10 @@ def _emit_rows(total: int, gap_cells: int) -> tuple[int, int]:
     return cap, min(max(default_gap_capacity(cap) or cap, bucket_capacity(gap_cells)), cap)
 
 
-def plan_shapes(m1: OccupancyMap, m2: OccupancyMap, gap_capacity: int | None = None) -> PairPlan:
+def plan_pair_shapes(m1: OccupancyMap, m2: OccupancyMap, gap_capacity: int | None = None) -> PairPlan:
     """The shapes of the ``plan_pair`` result ``fuse_pair_planned`` computes first for ``m1`` and
     ``m2`` (a ``PairPlan`` of ``jax.ShapeDtypeStruct``), by the trace its program compiles from."""
-    n_in = m1.capacity + m2.capacity
-    rows = min(gap_capacity or default_gap_leaves(bucket_capacity(max(int(m1.count), int(m2.count)))), n_in)
+    rows = _first_gap_rows(gap_capacity, max(int(m1.count), int(m2.count)), m1.capacity + m2.capacity)
     weight, mode = jax.ShapeDtypeStruct((), jnp.float32), jax.ShapeDtypeStruct((), jnp.int32)
     return plan_pair.eval_shape(m1, m2, weight, weight, mode, gap_rows=rows)
 
@@ -236,7 +240,7 @@ def plan_shapes(m1: OccupancyMap, m2: OccupancyMap, gap_capacity: int | None = N
 def precompile_emit_pair(m1: OccupancyMap, m2: OccupancyMap, do_prune: bool, plan: PairPlan) -> bool:
     """Make ready, without running anything, the second-phase program (``emit_pair``) that
     ``fuse_pair_planned`` runs for ``m1`` and ``m2`` (checked maps of one resolution) after a
-    first phase of shapes ``plan`` (``plan_shapes``): its sizes from the refinement counted on
+    first phase of shapes ``plan`` (``plan_pair_shapes``): its sizes from the refinement counted on
     the host (``refinement_cells``). Meant for a thread beside one that fuses the pair, so the
     two phases compile side by side. Returns ``False`` (nothing done) without an open kernel
     store (``kernel_store.StoredJit.precompile``)."""

@@ -35,7 +35,6 @@ from __future__ import annotations
 import numpy as np
 
 from .. import morton
-from .._ops import bucket_capacity
 from ..map import OccupancyMap
 from ..se3 import check_rigid_transform
 from ._bricks import make_plan, transformed_bounds
@@ -98,7 +97,4 @@ def transform_map(m: OccupancyMap, T_dst_src, method: str = "trilinear", *,
     plan = make_plan(m, T, method, space, int(chunk_bricks), out_capacity, (p_min, p_max))
     cells = plan.cells
     kernel_out, total = run_kernel(plan) if plan.n_dest_bricks else (None, 0)
-    out = merge_with_cells(kernel_out, total, cells.codes, cells.depths, cells.log_odds, m)
-    n = out.num_leaves
-    cap = bucket_capacity(n)
-    return out.with_capacity(cap) if cap < out.capacity else out
+    return merge_with_cells(kernel_out, total, cells.codes, cells.depths, cells.log_odds, m).trimmed()

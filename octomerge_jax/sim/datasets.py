@@ -13,7 +13,6 @@ import dataclasses
 
 import numpy as np
 
-from .._ops import bucket_capacity
 from ..insert import CapacityPlan, insert_point_clouds
 from ..map import OccupancyMap, OccupancyParams, empty
 from .scenes import Scene, make_scene
@@ -51,18 +50,11 @@ def _map_clouds(scans, poses_map_sensor) -> tuple[list[np.ndarray], np.ndarray]:
 
 
 def build_map(scans, poses_map_sensor, resolution: float, max_range: float = -1.0,
-              params: OccupancyParams | None = None, *, plan: CapacityPlan | None = None) -> OccupancyMap:
+              params: OccupancyParams | None = None) -> OccupancyMap:
     """Insert sensor-frame scans ``(n_i, 3)`` [m] at their poses ``(N, 4, 4)`` (OctoMap
-    ``insertPointCloud`` per scan). ``plan``: a ``CapacityPlan`` shared with other maps of
-    the run (reserved for these scans here); default one of their own. The map's capacity is
-    its leaves' bucket."""
+    ``insertPointCloud`` per scan)."""
     clouds, origins = _map_clouds(scans, poses_map_sensor)
-    if plan is not None:
-        for pts, o in zip(clouds, origins):
-            plan.reserve(pts, o, resolution, max_range)
-    m = insert_point_clouds(empty(resolution, params), clouds, origins, max_range, plan=plan)
-    trimmed = bucket_capacity(m.num_leaves)  # the headroom the run's updates grew with
-    return m.with_capacity(trimmed) if trimmed < m.capacity else m
+    return insert_point_clouds(empty(resolution, params), clouds, origins, max_range)
 
 
 def simulate_runs(scene="lab", *, sensor=None, spacing: float | None = None, yaw_2_rad: float = np.pi / 4,
@@ -118,10 +110,11 @@ def make_two_robot_maps(scene="lab", resolution: float = 0.1, *, sensor=None, sp
     run1, run2, T_1_2 = simulate_runs(scene, sensor=sensor, spacing=spacing, yaw_2_rad=yaw_2_rad,
                                       offset_2=offset_2, drift_translation=drift_translation,
                                       drift_yaw_rad=drift_yaw_rad, seed=seed)
+    inputs = [_map_clouds(run.scans, run.poses_map_sensor) for run in (run1, run2)]
     plan = CapacityPlan()  # both maps' scans sized up front: map 2 reuses map 1's programs
-    for run in (run1, run2):
-        for pts, o in zip(*_map_clouds(run.scans, run.poses_map_sensor)):
+    for clouds, origins in inputs:
+        for pts, o in zip(clouds, origins):
             plan.reserve(pts, o, resolution, max_range)
-    map1 = build_map(run1.scans, run1.poses_map_sensor, resolution, max_range, params, plan=plan)
-    map2 = build_map(run2.scans, run2.poses_map_sensor, resolution, max_range, params, plan=plan)
+    map1, map2 = (insert_point_clouds(empty(resolution, params), clouds, origins, max_range, plan=plan).trimmed()
+                  for clouds, origins in inputs)  # the headroom the run's updates grew with trimmed
     return map1, map2, T_1_2
