@@ -151,7 +151,7 @@ def prefetch_recent() -> bool:
     """Start loading, in a background thread, the programs listed in the open store's
     ``RECENT_FILE`` (the last command's, in the order it used them) when they were made in this
     environment: a command like the last one then finds them loaded instead of loading each when
-    it first calls it (0.1-0.4 s each, in which the loading releases the GIL). A program the
+    it first calls it (loading releases the GIL, so it overlaps the command's work). A program the
     command calls while the thread loads it waits for it; ``close_store`` stops the thread.
     Returns whether a thread was started. docs/design.md, "Compile cache and warm-up"."""
     directory = _STATE["dir"]
