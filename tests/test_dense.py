@@ -18,6 +18,7 @@ from jax.test_util import check_grads
 
 from octomerge_jax import se3, tree
 from octomerge_jax.registration import Status, dense, metrics
+from octomerge_jax.registration.dense import _loss as dense_loss
 from octomerge_jax.registration.dense import _solve as dense_solve
 from octomerge_jax.registration.dense._lbfgs import minimize
 from octomerge_jax.sim import surface_samples
@@ -230,6 +231,39 @@ def test_minimize_converges_and_vmaps():
     for h in np.asarray(r.history):
         h = h[np.isfinite(h)]
         assert np.all(np.diff(h) <= 1e-6)
+
+
+def test_minimize_returns_the_objectives_aux_at_its_result():
+    """``has_aux=True``: the objective returns ``(value, aux)``; the iterates are those of the
+    plain objective and the result's ``aux`` is the objective's at the result."""
+    A = jnp.diag(jnp.asarray([1.0, 10.0, 100.0], jnp.float32))
+
+    def f(x):
+        return 0.5 * x @ A @ x
+
+    def f_aux(x):
+        return f(x), (jnp.sum(x), 2.0 * x)
+
+    x0 = jnp.asarray([1.0, -1.0, 0.5], jnp.float32)
+    kw = dict(maxiter=50, tol=1e-4, xtol=1e-7, init_step=0.1)
+    plain = jax.jit(lambda x: minimize(f, x, **kw))(x0)
+    r = jax.jit(lambda x: minimize(f_aux, x, has_aux=True, **kw))(x0)
+    assert plain.aux is None
+    np.testing.assert_array_equal(np.asarray(r.x), np.asarray(plain.x))
+    np.testing.assert_array_equal(np.asarray(r.history), np.asarray(plain.history))
+    total, twice = f_aux(r.x)[1]
+    np.testing.assert_allclose(np.asarray(r.aux[0]), np.asarray(total), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(r.aux[1]), np.asarray(twice), rtol=1e-6, atol=1e-7)
+
+
+def test_reported_scores_are_the_results(problem):
+    """``AlignResult``'s loss, overlap and agreement are the finest level's at its ``T_1_2``
+    (the solver's own evaluations score the start, the guard and the result)."""
+    r = dense.solve_alignment(problem, perturbed(0.1, -0.05, 0.0, 0.0, 0.0, 0.04), maxiter=MAXITER)
+    loss, overlap, agreement = jax.jit(dense_loss.fine_scores)(problem, r.T_1_2)
+    for got, want in ((r.loss, loss), (r.overlap, overlap), (r.agreement, agreement)):
+        np.testing.assert_allclose(float(got), float(want), rtol=1e-5, atol=1e-6)
+    assert Status(int(r.status)).usable
 
 
 @pytest.mark.slow  # the optional backend; the default one is tested above

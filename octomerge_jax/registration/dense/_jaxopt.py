@@ -57,7 +57,8 @@ def _lbfgs(fun: Callable, maxiter: int, max_stepsize: float, history_size: int):
 
 
 def minimize_jaxopt(fun: Callable, x0, *args, maxiter: int, tol=1e-4, xtol=1e-5,
-                    max_stepsize: float = 1.0, history_size: int = 10, patience: int = 3) -> MinimizeResult:
+                    max_stepsize: float = 1.0, history_size: int = 10, patience: int = 3,
+                    has_aux: bool = False) -> MinimizeResult:
     """Minimise the scalar ``fun(x, *args)`` from ``x0 (n,)`` with jaxopt's L-BFGS (Nocedal &
     Wright Alg. 7.5) and an Armijo backtracking line search that starts every iteration from
     ``max_stepsize`` (the natural quasi-Newton step).
@@ -69,6 +70,8 @@ def minimize_jaxopt(fun: Callable, x0, *args, maxiter: int, tol=1e-4, xtol=1e-5,
       tol: gradient-norm tolerance (may be traced).
       xtol: Euclidean step length, units of ``x``, below which a step counts as stalled (may
         be traced).
+      has_aux: static; ``fun`` returns ``(value, aux)``: jaxopt minimises the value, and the
+        result's ``aux`` is that of its ``x``.
 
     Returns:
       ``MinimizeResult``. Stops when the gradient norm is ``<= tol``, ``patience``
@@ -76,7 +79,11 @@ def minimize_jaxopt(fun: Callable, x0, *args, maxiter: int, tol=1e-4, xtol=1e-5,
       can give one null step that is not yet convergence), the objective becomes non-finite,
       or after ``maxiter`` iterations. Pure: jittable and vmappable.
     """
-    solver = _lbfgs(fun, maxiter, max_stepsize, history_size)
+    objective = fun
+    if has_aux:
+        def objective(x, *a):
+            return fun(x, *a)[0]
+    solver = _lbfgs(objective, maxiter, max_stepsize, history_size)
     x0 = jnp.asarray(x0)
     state0 = solver.init_state(x0, *args)
     hist0 = jnp.full((int(maxiter) + 1,), jnp.nan, state0.value.dtype).at[0].set(state0.value)
@@ -100,9 +107,9 @@ def minimize_jaxopt(fun: Callable, x0, *args, maxiter: int, tol=1e-4, xtol=1e-5,
     init = _Carry(x0, state0, hist0, jnp.int32(0), state0.error <= tol, jnp.int32(0), jnp.bool_(False))
     c = jax.lax.while_loop(cond, body, init)
     x, state, hist, it, stalls, bad = c.x, c.state, c.hist, c.it, c.stalls, c.bad
-    value = fun(x, *args)
+    value, aux = fun(x, *args) if has_aux else (fun(x, *args), None)
     # converged: small gradient or stalled steps, never by running out of iterations while
     # still moving, and never after a non-finite objective
     converged = (jnp.isfinite(value) & ~bad) & ((state.error <= tol) | (stalls >= patience))
     return MinimizeResult(x=x, value=value, history=hist, num_iterations=it,
-                          converged=converged, grad_norm=state.error)
+                          converged=converged, grad_norm=state.error, aux=aux)

@@ -9,7 +9,7 @@ Alg. 7.4 (the L-BFGS two-loop recursion), eq. 7.20 (the initial scaling ``H_0``)
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -26,6 +26,7 @@ class MinimizeResult(NamedTuple):
     num_iterations: jax.Array  # () int32 iterations performed
     converged: jax.Array       # () bool: small gradient or stalled steps, not merely maxiter reached
     grad_norm: jax.Array       # () gradient norm at x
+    aux: Any = None            # with has_aux: the objective's auxiliary output at x, else None
 
 
 class _Memory(NamedTuple):
@@ -57,6 +58,7 @@ class _State(NamedTuple):
     converged: jax.Array   # () bool
     bad: jax.Array         # () bool, the objective is not finite at x0
     hist: jax.Array        # (maxiter + 1,) objective after every accepted step
+    aux: Any = None        # with has_aux: the objective's auxiliary output at x
 
 
 def _empty_memory(m: int, n: int, dt) -> _Memory:
@@ -108,10 +110,11 @@ def _two_loop(g, mem: _Memory):
     return -jax.lax.fori_loop(0, m, second, r)
 
 
-def _step(c: _State, ft, gt, *, xtol, tol, init_step, armijo, max_backtracks, patience) -> _State:
-    """One evaluation ``(ft, gt)`` at the trial point ``c.x + c.a c.d``: accept it (new iterate,
-    curvature pair, quasi-Newton direction) or halve the step; after ``max_backtracks`` halvings
-    restart along ``-g`` with an empty memory, or give up if that was already steepest descent."""
+def _step(c: _State, ft, gt, aux_t, *, xtol, tol, init_step, armijo, max_backtracks, patience) -> _State:
+    """One evaluation ``(ft, gt)`` (and the objective's auxiliary output ``aux_t``) at the trial
+    point ``c.x + c.a c.d``: accept it (new iterate, curvature pair, quasi-Newton direction) or
+    halve the step; after ``max_backtracks`` halvings restart along ``-g`` with an empty memory,
+    or give up if that was already steepest descent."""
     dt = c.x.dtype
     xt = c.x + c.a * c.d
     finite = jnp.isfinite(ft) & jnp.all(jnp.isfinite(gt))
@@ -125,6 +128,7 @@ def _step(c: _State, ft, gt, *, xtol, tol, init_step, armijo, max_backtracks, pa
     x = jnp.where(moved, xt, c.x)
     f = jnp.where(moved, ft, c.f)
     g = jnp.where(moved, gt, c.g)
+    aux = jax.tree_util.tree_map(lambda a, b: jnp.where(moved, a, b), aux_t, c.aux)
     it = c.it + accept.astype(jnp.int32)
     hist = jnp.where(first, c.hist.at[0].set(ft), jnp.where(accept, c.hist.at[it].set(ft), c.hist))
     step = jnp.linalg.norm(s)
@@ -146,12 +150,12 @@ def _step(c: _State, ft, gt, *, xtol, tol, init_step, armijo, max_backtracks, pa
     converged = small | (stalls >= patience) | give_up
     return _State(x=x, f=f, g=g, d=d, a=a, memory=mem, it=it, evals=c.evals + 1,
                   backtracks=backtracks, stalls=stalls, started=jnp.bool_(True),
-                  done=bad | converged, converged=converged & ~bad, bad=bad, hist=hist)
+                  done=bad | converged, converged=converged & ~bad, bad=bad, hist=hist, aux=aux)
 
 
 def minimize(fun: Callable, x0, *args, maxiter: int, tol=1e-4, xtol=1e-5, init_step=1.0,
              history_size: int = 6, patience: int = 3, max_backtracks: int = 8,
-             armijo: float = 1e-4) -> MinimizeResult:
+             armijo: float = 1e-4, has_aux: bool = False) -> MinimizeResult:
     """Minimise the scalar ``fun(x, *args)`` from ``x0 (n,)`` with L-BFGS and an Armijo
     backtracking line search, as one ``lax.while_loop`` that evaluates ``value_and_grad(fun)``
     once per step (at the initial point, at a trial step or at a halved step).
@@ -173,6 +177,9 @@ def minimize(fun: Callable, x0, *args, maxiter: int, tol=1e-4, xtol=1e-5, init_s
       init_step: length of steepest-descent trial steps, units of ``x`` (may be traced).
       history_size, patience, max_backtracks: static; ``patience`` stalled steps in a row stop.
       armijo: sufficient-decrease constant.
+      has_aux: static; ``fun`` returns ``(value, aux)`` (``aux`` a pytree of arrays, no
+        gradient), and the result's ``aux`` is that of its ``x`` (an objective evaluated
+        once for its value and its by-products).
 
     Returns:
       ``MinimizeResult``. Stops on ``|g| <= tol``, on ``patience`` consecutive accepted steps
@@ -182,7 +189,7 @@ def minimize(fun: Callable, x0, *args, maxiter: int, tol=1e-4, xtol=1e-5, init_s
     """
     x0 = jnp.asarray(x0)
     n, m, dt = x0.shape[0], int(history_size), x0.dtype
-    vg = jax.value_and_grad(fun)
+    vg = jax.value_and_grad(fun, has_aux=has_aux)
     rules = dict(tol=jnp.asarray(tol, dt), xtol=jnp.asarray(xtol, dt), init_step=jnp.asarray(init_step, dt),
                  armijo=armijo, max_backtracks=max_backtracks, patience=patience)
     max_evals = (int(max_backtracks) + 2) * int(maxiter) + 1
@@ -192,14 +199,19 @@ def minimize(fun: Callable, x0, *args, maxiter: int, tol=1e-4, xtol=1e-5, init_s
                   backtracks=jnp.int32(0), stalls=jnp.int32(0), started=jnp.bool_(False),
                   done=jnp.bool_(False), converged=jnp.bool_(False), bad=jnp.bool_(False),
                   hist=jnp.full((int(maxiter) + 1,), jnp.nan, dt))
+    if has_aux:  # NaN (or zero) until the first evaluation, of the shapes fun returns
+        shapes = jax.eval_shape(lambda x: fun(x, *args)[1], x0)
+        init = init._replace(aux=jax.tree_util.tree_map(
+            lambda s: jnp.full(s.shape, jnp.nan if jnp.issubdtype(s.dtype, jnp.floating) else 0, s.dtype), shapes))
 
     def cond(c):
         return (~c.done) & (c.it < maxiter) & (c.evals < max_evals)
 
     def body(c):
-        ft, gt = vg(c.x + c.a * c.d, *args)
-        return _step(c, ft, gt, **rules)
+        value, gt = vg(c.x + c.a * c.d, *args)
+        ft, aux_t = value if has_aux else (value, None)
+        return _step(c, ft, gt, aux_t, **rules)
 
     c = jax.lax.while_loop(cond, body, init)
     return MinimizeResult(x=c.x, value=c.f, history=c.hist, num_iterations=c.it,
-                          converged=c.converged, grad_norm=jnp.linalg.norm(c.g))
+                          converged=c.converged, grad_norm=jnp.linalg.norm(c.g), aux=c.aux)

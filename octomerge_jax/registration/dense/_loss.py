@@ -30,7 +30,8 @@ from ... import morton, se3, tree
 from ...map import OccupancyMap
 from ._problem import AlignProblem, Level, LevelPair, both_at, prepare_alignment
 
-__all__ = ["alignment_loss", "fine_scores", "level_losses", "pair_loss", "problem_loss", "score_alignment"]
+__all__ = ["alignment_loss", "fine_scores", "level_losses", "pair_loss", "pair_loss_and_checks", "problem_loss",
+           "score_alignment"]
 
 _OVERLAP_PRIOR = 0.1  # pseudo-weight added to the commonly known weight (loss denominator)
 _CORNERS = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.int32)
@@ -139,21 +140,27 @@ def alignment_loss(m1: OccupancyMap, m2: OccupancyMap, T_1_2, *, level: int = 0,
     return problem_loss(problem, T_1_2)
 
 
-def fine_scores(problem: AlignProblem, T_1_2):
-    """``(loss, overlap, agreement)``, each ``()`` float32, at the finest level under
-    ``T_1_2 (4, 4)`` (``AlignResult``'s fields of the same names). ``overlap``: the share of
-    map 2's occupied sample weight landing in map 1's known space; ``agreement``: of that, the
-    share landing next to map 1's surfaces (one of the 8 voxels the point interpolates from is
-    occupied). Both are one-way (map 2 in map 1)."""
-    pair = both_at(problem, problem.num_levels - 1)
-    fine = pair.forward
-    terms = _level_terms(fine, T_1_2)
+def pair_loss_and_checks(pair: LevelPair, T_1_2):
+    """``(loss, (overlap, agreement))``, each ``()`` float32, of one level (``both_at``) under
+    ``T_1_2 (4, 4)``: ``pair_loss`` and what the status checks read, from one evaluation.
+    ``overlap``: the share of map 2's occupied sample weight landing in map 1's known space;
+    ``agreement``: of that, the share landing next to map 1's surfaces (one of the 8 voxels the
+    point interpolates from is occupied). Both are one-way (map 2 in map 1)."""
+    fwd = pair.forward
+    terms = _level_terms(fwd, T_1_2)
     loss = _symmetrised(terms.loss, pair, T_1_2)
     cov, known, lo = terms.coverage, terms.corners.known, terms.corners.log_odds
-    w_occ = jnp.where(fine.occupied2, fine.weight2, 0.0)
+    w_occ = jnp.where(fwd.occupied2, fwd.weight2, 0.0)
     overlap = jnp.sum(w_occ * cov) / jnp.maximum(jnp.sum(w_occ), 1e-30)
-    near = jnp.any(known & (lo >= fine.map1.params.occupancy_threshold_log_odds), axis=-1)
+    near = jnp.any(known & (lo >= fwd.map1.params.occupancy_threshold_log_odds), axis=-1)
     agree = jnp.sum(w_occ * cov * near.astype(jnp.float32)) / jnp.maximum(jnp.sum(w_occ * cov), 1e-30)
+    return loss, (overlap, agree)
+
+
+def fine_scores(problem: AlignProblem, T_1_2):
+    """``(loss, overlap, agreement)``, each ``()`` float32, at the finest level under
+    ``T_1_2 (4, 4)`` (``AlignResult``'s fields of the same names; ``pair_loss_and_checks``)."""
+    loss, (overlap, agree) = pair_loss_and_checks(both_at(problem, problem.num_levels - 1), T_1_2)
     return loss, overlap, agree
 
 

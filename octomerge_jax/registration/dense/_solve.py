@@ -38,7 +38,7 @@ from ...se3 import check_rigid_transform
 from ..status import Status, usable_mask
 from ._jaxopt import minimize_jaxopt
 from ._lbfgs import minimize
-from ._loss import fine_scores, pair_loss
+from ._loss import pair_loss_and_checks
 from ._problem import AlignProblem, both_at, pose_from_increment, prepare_alignment
 
 __all__ = ["AlignResult", "Solver", "align_dense", "best_result", "solve_alignment", "solve_alignment_batch"]
@@ -102,55 +102,66 @@ class _LevelOutcome(NamedTuple):
 
 
 def _objective(z, pair, T_start, center, radius):
-    return pair_loss(pair, pose_from_increment(T_start, z, center, radius))
+    """The level's loss at the pose ``z`` makes of ``T_start``, with the status checks'
+    ``(overlap, agreement)`` there as the auxiliary output (``pair_loss_and_checks``)."""
+    return pair_loss_and_checks(pair, pose_from_increment(T_start, z, center, radius))
 
 
 def _solve_level(problem: AlignProblem, opts: _Options, maxiter: int, solver: Solver, T, i, active=True):
-    """Minimise level ``i`` (traced) from ``T``; an inactive solve (``tol = inf``) stops at its
-    first evaluation, also as one member of a ``vmap`` batch (where a ``cond`` would run both
-    branches for every member)."""
+    """Minimise level ``i`` (traced) from ``T``: ``(pose, _LevelOutcome, (loss, overlap,
+    agreement) at the solve's last iterate)``. An inactive solve (``tol = inf``) stops at its
+    first evaluation, so its figures are those of ``T`` itself, also as one member of a ``vmap``
+    batch (where a ``cond`` would run both branches for every member)."""
     pair = both_at(problem, i)
     cell = problem.map1.resolution / problem.scale[i]  # this level's cell size [m]
     args = (pair, T, problem.center2, problem.radius)
     tol, xtol = jnp.where(active, opts.tol, jnp.inf), opts.xtol / problem.scale[i]
     if solver == "jaxopt":
-        res = minimize_jaxopt(_objective, jnp.zeros(6, jnp.float32), *args, maxiter=maxiter, tol=tol, xtol=xtol)
+        res = minimize_jaxopt(_objective, jnp.zeros(6, jnp.float32), *args, maxiter=maxiter, tol=tol, xtol=xtol,
+                              has_aux=True)
     else:
         res = minimize(_objective, jnp.zeros(6, jnp.float32), *args, maxiter=maxiter, tol=tol, xtol=xtol,
-                       init_step=0.5 * cell)
+                       init_step=0.5 * cell, has_aux=True)
     # trust region: a level may move the pose by at most max_step (norm of z, metres)
     n = jnp.linalg.norm(res.x)
     z = res.x * jnp.minimum(1.0, opts.max_step / jnp.maximum(n, 1e-12))
     T_new = pose_from_increment(T, z, problem.center2, problem.radius)
     return T_new, _LevelOutcome(res.history, res.num_iterations, res.converged & (n <= opts.max_step),
-                                res.grad_norm)
+                                res.grad_norm), (res.value, *res.aux)
 
 
 def _skip_level(maxiter: int, T, i):
-    """A level before ``start_level``: the pose passes through."""
+    """A step that solves nothing (a level before ``start_level``): the pose passes through."""
     nan = jnp.full((maxiter + 1,), jnp.nan, jnp.float32)
-    return T, _LevelOutcome(nan, jnp.int32(0), jnp.bool_(True), jnp.float32(jnp.nan))
+    scores = (jnp.float32(jnp.nan),) * 3
+    return T, _LevelOutcome(nan, jnp.int32(0), jnp.bool_(True), jnp.float32(jnp.nan)), scores
 
 
-def _level_step(problem: AlignProblem, opts: _Options, maxiter: int, solver: Solver, T0, carry, i):
-    """Scan step ``i``: levels ``0..L-1`` (the ones before ``start_level`` skipped), then the
-    guard: a path that ends with a higher finest loss than the start's is dropped and the finest
-    level solved again from the start; then the end. The finest-level scores come from one place
-    in the program (``docs/design.md``), at the steps that need them: the start's at step 0, the
-    path's at the guard, the result's at the end. ``carry``: ``(T, start loss, scores)``.
-    Returns ``(carry, (outcome, restart))``."""
-    T, start_loss, _ = carry
+def _level_step(problem: AlignProblem, opts: _Options, maxiter: int, solver: Solver, T0, carry, k):
+    """Scan step ``k`` of ``_solve``, one solve call each, so the program holds the loss once
+    (``docs/design.md``, "Coarse to fine: start level and guard"): step 0 scores the start at
+    the finest level (a solve stopped at its first evaluation); steps ``1..L`` solve the levels
+    ``0..L-1`` (those before ``start_level`` skipped); step ``L + 1`` scores the path's end and
+    decides the guard (the end scores worse than the start: a restart); step ``L + 2`` solves the
+    finest level again from the start on a restart, and step ``L + 3`` scores that result
+    (otherwise both are skipped and the guard's scores are the result's). ``carry``: ``(T,
+    start loss, scores (loss, overlap, agreement), restart)``. Returns ``(carry, outcome)``."""
+    T, start_loss, scores, restart = carry
     last = problem.num_levels - 1
-    guard, end = i == last + 1, i == last + 2
-    nan = jnp.float32(jnp.nan)
-    at = jnp.where(i == 0, T0, T)
-    scores = jax.lax.cond((i == 0) | guard | end, lambda: fine_scores(problem, at), lambda: (nan, nan, nan))
-    start_loss = jnp.where(i == 0, scores[0], start_loss)
-    restart = guard & (opts.start_level < last) & jnp.isfinite(start_loss) & ~(scores[0] <= start_loss)
-    solve = partial(_solve_level, problem, opts, maxiter, solver, active=~guard | restart)
-    T_out, outcome = jax.lax.cond((i < opts.start_level) | end, partial(_skip_level, maxiter), solve,
-                                  jnp.where(restart, T0, T), jnp.minimum(i, last))
-    return (jnp.where((guard & ~restart) | end, T, T_out), start_loss, scores), (outcome, restart)
+    level_step = (k >= 1) & (k <= last + 1)
+    guard, again, end = k == last + 2, k == last + 3, k == last + 4
+    scoring = (k == 0) | guard | end
+    skip = (level_step & (k - 1 < opts.start_level)) | ((again | end) & ~restart)
+    level = jnp.where(level_step, k - 1, last)
+    solve = partial(_solve_level, problem, opts, maxiter, solver, active=~scoring)
+    T_out, outcome, found = jax.lax.cond(skip, partial(_skip_level, maxiter), solve,
+                                         jnp.where((k == 0) | again, T0, T), level)
+    start_loss = jnp.where(k == 0, found[0], start_loss)
+    restart = jnp.where(guard, (opts.start_level < last) & jnp.isfinite(start_loss) & ~(found[0] <= start_loss),
+                        restart)
+    scores = tuple(jnp.where(scoring & ~skip, a, b) for a, b in zip(found, scores))
+    T = jnp.where(level_step | (again & restart), T_out, T)
+    return (T, start_loss, scores, restart), outcome
 
 
 def _status(loss, T, overlap, agree, converged, opts: _Options):
@@ -163,18 +174,17 @@ def _status(loss, T, overlap, agree, converged, opts: _Options):
 
 
 def _solve(problem: AlignProblem, T_init, opts: _Options, maxiter: int, solver: Solver) -> AlignResult:
-    """Coarse-to-fine minimisation (one compiled level step, scanned over the levels, the guard
-    step and the end, which scores the result at the finest level), then the status."""
+    """Coarse-to-fine minimisation (one compiled step, scanned over the start's score, the
+    levels, the guard and its restart, ``_level_step``), then the status."""
     T0 = jnp.asarray(T_init, jnp.float32)
     last = problem.num_levels - 1
     nan = jnp.float32(jnp.nan)
     step = partial(_level_step, problem, opts, maxiter, solver, T0)
-    (T, _, (loss, overlap, agree)), (rows, restarts) = jax.lax.scan(step, (T0, nan, (nan, nan, nan)),
-                                                                    jnp.arange(last + 3))
-    restart = restarts[last + 1]
-    num_iterations = jnp.sum(rows.iterations)  # the end's row is a skipped level: 0
-    # the level rows; a restart's solve (the guard's row) replaces the finest level's
-    rows = jax.tree_util.tree_map(lambda a: a[:last + 1].at[last].set(jnp.where(restart, a[last + 1], a[last])),
+    (T, _, (loss, overlap, agree), restart), rows = jax.lax.scan(
+        step, (T0, nan, (nan, nan, nan), jnp.bool_(False)), jnp.arange(last + 5))
+    num_iterations = jnp.sum(rows.iterations)  # the scoring and skipped steps' rows: 0
+    # the level rows; a restart's solve replaces the finest level's
+    rows = jax.tree_util.tree_map(lambda a: a[1:last + 2].at[last].set(jnp.where(restart, a[last + 3], a[last + 1])),
                                   rows)
     status = _status(loss, T, overlap, agree, rows.converged[-1], opts)
     return AlignResult(T_1_2=T, loss=loss, loss_history=rows.history, iterations=rows.iterations,
