@@ -131,7 +131,8 @@ def _solve_level(problem: AlignProblem, opts: _Options, maxiter: int, solver: So
 
 
 def _skip_level(maxiter: int, T, i):
-    """A step that solves nothing (a level before ``start_level``): the pose passes through."""
+    """A step that solves nothing (a level before ``start_level``, the restart's two steps
+    without a restart): the pose passes through, the scores are NaN."""
     nan = jnp.full((maxiter + 1,), jnp.nan, jnp.float32)
     scores = (jnp.float32(jnp.nan),) * 3
     return T, _LevelOutcome(nan, jnp.int32(0), jnp.bool_(True), jnp.float32(jnp.nan)), scores
