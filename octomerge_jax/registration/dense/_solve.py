@@ -131,8 +131,7 @@ def _solve_level(problem: AlignProblem, opts: _Options, maxiter: int, solver: So
 
 
 def _skip_level(maxiter: int, T, i):
-    """A step that solves nothing (a level before ``start_level``, the restart's two steps
-    without a restart): the pose passes through, the scores are NaN."""
+    """A level before ``start_level``: the pose passes through, the scores are NaN."""
     nan = jnp.full((maxiter + 1,), jnp.nan, jnp.float32)
     scores = (jnp.float32(jnp.nan),) * 3
     return T, _LevelOutcome(nan, jnp.int32(0), jnp.bool_(True), jnp.float32(jnp.nan)), scores
@@ -144,17 +143,20 @@ def _level_step(problem: AlignProblem, opts: _Options, maxiter: int, solver: Sol
     the finest level (a solve stopped at its first evaluation); steps ``1..L`` solve the levels
     ``0..L-1`` (those before ``start_level`` skipped); step ``L + 1`` scores the path's end and
     decides the guard (the end scores worse than the start: a restart); step ``L + 2`` solves the
-    finest level again from the start on a restart, and step ``L + 3`` scores that result
-    (otherwise both are skipped and the guard's scores are the result's). ``carry``: ``(T,
-    start loss, scores (loss, overlap, agreement), restart)``. Returns ``(carry, outcome)``."""
+    finest level again from the start on a restart (otherwise it stops at its first evaluation and
+    its pose is dropped), and step ``L + 3`` scores the result. Only the start level skips a step:
+    a skip that depended on a member's restart would make the ``cond`` batched under ``vmap``,
+    which runs both branches at every step. ``carry``: ``(T, start loss, scores (loss, overlap,
+    agreement), restart)``. Returns ``(carry, outcome)``."""
     T, start_loss, scores, restart = carry
     last = problem.num_levels - 1
     level_step = (k >= 1) & (k <= last + 1)
     guard, again, end = k == last + 2, k == last + 3, k == last + 4
     scoring = (k == 0) | guard | end
-    skip = (level_step & (k - 1 < opts.start_level)) | ((again | end) & ~restart)
+    # the restart's solve is gated by its activity (tol), not by the skip (see the docstring)
+    skip = level_step & (k - 1 < opts.start_level)
     level = jnp.where(level_step, k - 1, last)
-    solve = partial(_solve_level, problem, opts, maxiter, solver, active=~scoring)
+    solve = partial(_solve_level, problem, opts, maxiter, solver, active=~scoring & (~again | restart))
     T_out, outcome, found = jax.lax.cond(skip, partial(_skip_level, maxiter), solve,
                                          jnp.where((k == 0) | again, T0, T), level)
     start_loss = jnp.where(k == 0, found[0], start_loss)
