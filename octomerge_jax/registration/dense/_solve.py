@@ -162,7 +162,7 @@ def _level_step(problem: AlignProblem, opts: _Options, maxiter: int, solver: Sol
     start_loss = jnp.where(k == 0, found[0], start_loss)
     restart = jnp.where(guard, (opts.start_level < last) & jnp.isfinite(start_loss) & ~(found[0] <= start_loss),
                         restart)
-    scores = tuple(jnp.where(scoring & ~skip, a, b) for a, b in zip(found, scores))
+    scores = tuple(jnp.where(scoring, a, b) for a, b in zip(found, scores))  # scoring steps never skip
     T = jnp.where(level_step | (again & restart), T_out, T)
     return (T, start_loss, scores, restart), outcome
 
