@@ -3,6 +3,7 @@ hold. Needs nbclient, nbformat and ipykernel (the test extra)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -18,7 +19,11 @@ NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
                                   pytest.param("03_gradient_transform_tuning.ipynb", marks=pytest.mark.slow),
                                   # 04 registers every overlapping pair of four robots' maps (ICP): minutes
                                   pytest.param("04_many_robots.ipynb", marks=pytest.mark.slow)])
-def test_notebook_runs(name):
+def test_notebook_runs(name, monkeypatch):
+    cache = os.environ.get("OCTOMERGE_CACHE_DIR", "off")
+    if cache != "off":  # the kernel loads what the run's other processes compiled (tests/conftest.py)
+        monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", cache)
+        monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
     pytest.importorskip("ipykernel")
