@@ -276,7 +276,7 @@ def test_guess_free_mode_ends_with_the_dense_step(room):
 def test_candidates_refined_side_by_side_as_one_after_another(room, monkeypatch):
     """The candidates' ICP runs in threads (``_refine_all``): the same results in the same order
     as one after another, timed as one ``icp`` stage, each run in the caller's context (its
-    memory budget)."""
+    memory budget), every stage ending at ``CANDIDATE_EPSILON_FACTOR`` times the threshold."""
     from octomerge_jax import budget
     from octomerge_jax.pipeline import globalreg
 
@@ -287,12 +287,14 @@ def test_candidates_refined_side_by_side_as_one_after_another(room, monkeypatch)
     poses = np.stack([T_true @ transform_from_xyz_rpy(dx, 0.05, 0.0, 0.0, 0.0, dyaw)
                       for dx, dyaw in ((0.1, 0.03), (-0.15, -0.05), (0.3, 0.4))])
     picked = [2, 0, 1]
-    one_by_one = [globalreg._refine(p1, p2, poses[i], i, MergeConfig(), RES, None) for i in picked]
-    budgets = []
+    factor = globalreg.CANDIDATE_EPSILON_FACTOR
+    one_by_one = [globalreg._refine(p1, p2, poses[i], i, MergeConfig(), RES, None, factor) for i in picked]
+    budgets, epsilons = [], []
     icp = reg.icp
 
     def recording(*a, **k):
         budgets.append(budget.current_budget())
+        epsilons.append((k["transformation_epsilon"], k["final_transformation_epsilon"]))
         return icp(*a, **k)
 
     monkeypatch.setattr(globalreg.reg, "icp", recording)
@@ -306,6 +308,7 @@ def test_candidates_refined_side_by_side_as_one_after_another(room, monkeypatch)
         assert int(a.result.num_iterations) == int(b.result.num_iterations)
     assert list(timings) == ["icp"]
     assert budgets == [3 << 30] * 3
+    assert factor > 1 and epsilons == [pytest.approx((factor * RES / 60,) * 2, rel=1e-12)] * 3
 
 
 @pytest.mark.slow

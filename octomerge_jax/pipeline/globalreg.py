@@ -58,10 +58,10 @@ from .config import MergeConfig
 from .report import MergeError, Registration
 from .timings import Timings
 
-__all__ = ["AMBIGUOUS_GAP", "CONFLICT_WEIGHT", "MAX_CONFLICT_RATIO", "MAX_ICP_DROP", "MAX_LOCAL_CONFLICT_RATIO",
-           "MIN_CONFIDENCE", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS", "MIN_PINNING_CELLS", "MIN_SHARED", "MIN_SHARED_OK",
-           "candidate_listener", "explained_fraction", "icp_left_start", "judge_local", "local_cell_sets",
-           "register_global"]
+__all__ = ["AMBIGUOUS_GAP", "CANDIDATE_EPSILON_FACTOR", "CONFLICT_WEIGHT", "MAX_CONFLICT_RATIO", "MAX_ICP_DROP",
+           "MAX_LOCAL_CONFLICT_RATIO", "MIN_CONFIDENCE", "MIN_EXPLAINED", "MIN_LOCAL_FITNESS", "MIN_PINNING_CELLS",
+           "MIN_SHARED", "MIN_SHARED_OK", "candidate_listener", "explained_fraction", "icp_left_start", "judge_local",
+           "local_cell_sets", "register_global"]
 
 #: a distinct second pose whose net agreement is within this share of the best's: "ambiguous"
 AMBIGUOUS_GAP = 0.1
@@ -96,6 +96,9 @@ _NORMAL_RADIUS = 2.0  # [coarse cells]
 _YAW_PEAKS, _TRANSLATION_PEAKS = 4, 6  # yaw peaks (each also turned by pi) x translation peaks per yaw
 _MAX_CORRELATION_CELLS = 1 << 21  # the correlation grid's cells (padded): its cell grows to fit
 _NUM_REFINED = 3  # distinct poses of the highest net agreement refined by ICP (all: see docs/design.md)
+#: the candidates' ICP ends each stage at this many times the stages' threshold (``stage_epsilon``): they are told
+#: apart on coarse cells, and the best one's ICP runs again at the threshold itself
+CANDIDATE_EPSILON_FACTOR = 6.0
 _candidate_callback: contextvars.ContextVar = contextvars.ContextVar("octomerge_candidate_listener", default=None)
 
 
@@ -324,11 +327,12 @@ def _confidence(gap: float, shared: float, pinning: float, conflict_ratio: float
     return float(margin * share * pinned * clean)
 
 
-def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timings: Timings | None) -> _Refined:
+def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timings: Timings | None,
+            epsilon_factor: float = 1.0) -> _Refined:
     """ICP on the commonly mapped subsets under ``T`` (padded to the full clouds' capacities:
-    one compiled ICP per pair), its last stage ending at the stages' change threshold; the
-    result made rigid when usable. ``timings``: its ICP is timed as stage ``icp`` (``None``:
-    not timed)."""
+    one compiled ICP per pair), every stage, the last one too, ending at ``epsilon_factor``
+    times the stages' change threshold (a traced argument: the same program); the result made
+    rigid when usable. ``timings``: its ICP is timed as stage ``icp`` (``None``: not timed)."""
     rc = config.registration
     q1, q2 = select_overlap(p1, p2, T, rc.overlap, overlap_margin(config, resolution))
     if min(q1.shape[0], q2.shape[0]) < rc.min_overlap_points:
@@ -337,7 +341,8 @@ def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timin
     kw = icp_kwargs(config, resolution)
     # the last stage ends at the stages' threshold, not a hundredth of it: on a voxel lattice it
     # creeps on for tens of iterations by millimetres (docs/design.md)
-    kw["final_transformation_epsilon"] = stage_epsilon(config, resolution)
+    eps = stage_epsilon(config, resolution) * float(epsilon_factor)
+    kw["transformation_epsilon"] = kw["final_transformation_epsilon"] = eps
     with contextlib.nullcontext() if timings is None else timings.stage("icp"):
         r = jax.block_until_ready(reg.icp(_pad(q2, cap2), _pad(q1, cap1), np.asarray(T, np.float64),
                                           source_count=q2.shape[0], target_count=q1.shape[0], **kw))
@@ -351,11 +356,13 @@ def _refine(p1, p2, T, index: int, config: MergeConfig, resolution: float, timin
 def _refine_all(p1, p2, poses, picked: list[int], config: MergeConfig, resolution: float,
                 timings: Timings) -> list[_Refined]:
     """``_refine`` of the poses ``poses[i]`` (``(k, 4, 4)``) for ``i`` in ``picked``, in that
-    order, up to one per CPU core at once (``_side_by_side``): one ICP leaves part of a CPU
-    idle, its loop being a chain of small kernels; the results are those of one after another
-    (``docs/design.md``, "Candidates refined side by side"). Timed as one stage ``icp``."""
+    order, its stages ending at ``CANDIDATE_EPSILON_FACTOR`` times the threshold, up to one per
+    CPU core at once (``_side_by_side``): one ICP leaves part of a CPU idle, its loop being a
+    chain of small kernels; the results are those of one after another (``docs/design.md``,
+    "Candidates refined side by side"). Timed as one stage ``icp``."""
     with timings.stage("icp"):
-        return _side_by_side(lambda i: _refine(p1, p2, poses[i], int(i), config, resolution, None), picked)
+        return _side_by_side(lambda i: _refine(p1, p2, poses[i], int(i), config, resolution, None,
+                                               CANDIDATE_EPSILON_FACTOR), picked)
 
 
 def _side_by_side(fn, items) -> list:
