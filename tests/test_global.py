@@ -18,6 +18,7 @@ from octomerge_jax.pipeline import (MergeConfig, Registration, Timings, candidat
                                      merge_batch,
                                     register_global, transform_from_xyz_rpy)
 from octomerge_jax.pipeline.clouds import occupied_clouds
+from octomerge_jax.registration import global_search
 from octomerge_jax.registration.features import cell_codes, cell_keys, coarse_cloud, neighbor_pairs, normals
 from octomerge_jax.registration.global_search import (MAX_TABLE_CELLS, MIN_FREE_FRACTION, cell_sets, consistency_score,
                                                       free_space, level_rotation, nudge_poses, pose_distance,
@@ -50,6 +51,45 @@ def test_translation_correlation_finds_a_shift():
     t0 = np.array([1.3, -2.1, 0.4])
     t, score = translation_candidates(p, p - t0, 0.25, num_peaks=2)
     assert np.abs(t[0] - t0).max() <= 0.25 and score[0] > score[1]
+
+
+def _brute_correlation(g1, g2):
+    """``{shift: agreeing less conflicting cell pairs}`` over every shift in (-s2, s1)."""
+    s1, s2 = np.asarray(g1.size), np.asarray(g2.size)
+    pad = [(int(a), int(a)) for a in s2]
+    o1, f1 = np.pad(g1.occupied, pad), np.pad(g1.free, pad)
+    out = {}
+    for d in np.ndindex(*(s1 + s2 - 1)):
+        d = np.asarray(d) - s2 + 1
+        w = tuple(slice(int(a), int(a + b)) for a, b in zip(d + s2, s2))  # g1's cells under g2's at shift d
+        out[tuple(int(x) for x in d)] = float(np.sum(o1[w] * g2.occupied - f1[w] * g2.occupied - o1[w] * g2.free))
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_translation_peaks_are_the_exact_counts_at_fast_fft_lengths(seed):
+    """The correlation is padded to lengths of 2, 3 and 5 only (here 7 and 11 to 8 and 12): the
+    peaks it reports are whole counts equal to a brute-force sum at their shifts, the first is
+    the largest, and a shift of the padding, which no pair of cells makes, is never reported
+    even when every real one scores below zero."""
+    assert [global_search._fast_length(n) for n in (1, 7, 79, 101, 158, 160)] == [1, 8, 80, 108, 160, 160]
+    rng = np.random.default_rng(seed)
+
+    def grid(size, p_occ, p_free):
+        u = rng.random(size)
+        occ = (u < p_occ).astype(np.float32)
+        return global_search.CorrelationGrid(np.zeros(3), np.zeros(3, np.int64), np.asarray(size, np.int64), occ,
+                                             ((u >= p_occ) & (u < p_occ + p_free)).astype(np.float32))
+
+    for p_free in (0.2, 0.9):  # with 0.9 free, most shifts conflict more than they agree
+        g1, g2 = grid((5, 3, 6), 0.3, p_free), grid((2, 4, 5), 0.3, p_free)
+        brute = _brute_correlation(g1, g2)
+        t, scores = global_search.translation_candidates_of_grids(g1, g2, 1.0, num_peaks=4, min_separation_cells=2)
+        shifts = [tuple(int(round(x)) for x in d) for d in t]
+        assert len(shifts) == 4 and all(d in brute for d in shifts)  # (-s2, s1): no padding shift
+        assert [brute[d] for d in shifts] == scores.tolist()
+        assert scores[0] == max(brute.values()) and np.all(np.diff(scores) <= 0)
+        assert all(np.max(np.abs(np.subtract(a, b))) >= 2 for i, a in enumerate(shifts) for b in shifts[:i])
 
 
 def test_a_cell_seen_free_in_part_refutes_nothing():

@@ -214,23 +214,31 @@ def translation_candidates_of_grids(g1: CorrelationGrid, g2: CorrelationGrid, vo
     """``translation_candidates`` from both maps' ``correlation_grid`` (edge ``voxel`` [m]):
     map 1's grid can serve every orientation of map 2."""
     s1, s2 = g1.size, g2.size
-    shape = tuple(int(x) for x in s1 + s2)
+    # every shift in (-s2, s1) without wrapping, padded to lengths the FFT is fast at
+    shape = tuple(_fast_length(int(x)) for x in s1 + s2)
     if int(np.prod(shape)) > max_cells:
         raise ValueError(f"correlation grid of {shape} cells of {voxel:g} m exceeds {max_cells} cells")
-    f1, f2 = np.fft.rfftn(g1.occupied, shape, axes=(0, 1, 2)), np.fft.rfftn(g2.occupied, shape, axes=(0, 1, 2))
+    axes = (0, 1, 2)
+    f1, f2 = np.fft.rfftn(g1.occupied, shape, axes=axes), np.fft.rfftn(g2.occupied, shape, axes=axes)
     # corr[d] = sum_x g1[x + d] g2[x]: map 2's cell x lands on map 1's cell x + d
     spec = f1 * np.conj(f2)
     if g1.free is not None:
-        spec -= np.fft.rfftn(g1.free, shape, axes=(0, 1, 2)) * np.conj(f2)
+        spec -= np.fft.rfftn(g1.free, shape, axes=axes) * np.conj(f2)
     if g2.free is not None:
-        spec -= f1 * np.conj(np.fft.rfftn(g2.free, shape, axes=(0, 1, 2)))
-    corr = np.fft.irfftn(spec, shape, axes=(0, 1, 2)).ravel()
+        spec -= f1 * np.conj(np.fft.rfftn(g2.free, shape, axes=axes))
+    # counts of cells: whole numbers, so ties are exact and broken by index at any FFT length
+    corr = np.rint(np.fft.irfftn(spec, shape, axes=axes))
+    for a in range(3):  # the padding's shifts, which no pair of cells makes, are never peaks
+        corr[(slice(None),) * a + (slice(int(s1[a]), shape[a] - int(s2[a]) + 1),)] = -np.inf
+    corr = corr.ravel()
     # the 64 num_peaks highest cells, highest first (ties: lower index first), without sorting them all
     k = min(64 * num_peaks, corr.size)
     top = np.argpartition(-corr, k - 1)[:k] if k < corr.size else np.arange(corr.size)
     flat = top[np.lexsort((top, -corr[top]))]
     shifts, scores = [], []
     for f in flat:
+        if corr[f] == -np.inf:  # only the padding's shifts are left
+            break
         # shifts run over (-s2, s1): indices from s1 on are negative shifts, wrapped
         d = np.array(np.unravel_index(f, shape))
         d = np.where(d >= s1, d - np.asarray(shape), d)
@@ -243,6 +251,22 @@ def translation_candidates_of_grids(g1: CorrelationGrid, g2: CorrelationGrid, vo
     # cell lo2 + j of map 2 lands on cell lo1 + j + d of map 1
     t = (d + g1.lo - g2.lo).astype(np.float64) * voxel + g1.shift - g2.shift
     return t, np.asarray(scores, np.float64)
+
+
+def _fast_length(n: int) -> int:
+    """The smallest length ``>= n`` whose only prime factors are 2, 3 and 5: NumPy's FFT over a
+    length with a large prime factor (158 = 2 x 79) takes several times as long."""
+    best = m2 = 1 << max(int(n) - 1, 0).bit_length()  # the power of two
+    while m2 >= 1:
+        m3 = m2
+        while m3 < best:
+            m5 = m3
+            while m5 < n:
+                m5 *= 5
+            best = min(best, m5)
+            m3 *= 3
+        m2 //= 2
+    return int(best)
 
 
 UNKNOWN, OCCUPIED, FREE = 0, 1, 2  # the cell labels of CellTable
