@@ -3,7 +3,6 @@ hold. Needs nbclient, nbformat and ipykernel (the test extra)."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -20,10 +19,10 @@ NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
                                   # 04 registers every overlapping pair of four robots' maps (ICP): minutes
                                   pytest.param("04_many_robots.ipynb", marks=pytest.mark.slow)])
 def test_notebook_runs(name, monkeypatch):
-    cache = os.environ.get("OCTOMERGE_CACHE_DIR", "off")
-    if cache != "off":  # the kernel loads what the run's other processes compiled (tests/conftest.py)
-        monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", cache)
-        monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    from octomerge_jax.cli.cache import worker_env
+
+    for key, value in worker_env().items():  # the kernel loads what the run compiled (tests/conftest.py)
+        monkeypatch.setenv(key, value)
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
     pytest.importorskip("ipykernel")
