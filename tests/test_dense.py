@@ -94,6 +94,37 @@ def test_coarsen_keeps_metric_positions_and_takes_max():
     np.testing.assert_allclose(lv.log_odds, [2.0, -0.5])
 
 
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_coarsen_matches_a_cell_by_cell_reference(k):
+    """Leaves of depths 12-16 on both sides of the frame's origin: each coarse cell holds the
+    maximum of the leaves it gathers, and a leaf of 2^k voxels or more keeps its extent."""
+    from octomerge_jax import morton
+
+    rng = np.random.default_rng(k)
+    m = tree.from_voxels(rng.integers(-40, 40, (3000, 3)) * 0.1 + 0.05, rng.normal(0.0, 2.0, 3000).astype(np.float32),
+                         0.1, prune_result=False)
+    lv = m.leaves()
+    keys, depths, values = [lv.keys.astype(np.int64)], [lv.depths], [lv.log_odds]
+    fine_cells = {tuple(q) for q in ((keys[0] - morton.KEY_OFFSET) >> 3).tolist()}
+    for c in {tuple(c) for c in rng.integers(-6, 6, (40, 3)).tolist()}:  # depth-13 leaves (8^3 voxels)
+        if c not in fine_cells and (c[0] + c[1]) % 2:
+            keys.append((np.array(c, np.int64) << 3)[None] + morton.KEY_OFFSET)
+            depths.append(np.array([13])), values.append(np.float32([rng.normal()]))
+    keys, depths, values = np.concatenate(keys), np.concatenate(depths), np.concatenate(values)
+    assert (depths == 13).sum() > 5
+    m = tree.from_leaves(morton.keys_to_codes(keys.astype(np.uint64)), depths, values, 0.1)
+    expected: dict = {}
+    for key, d, v in zip(keys - morton.KEY_OFFSET, depths, values):
+        cell = (tuple((key >> k).tolist()), min(int(d) + k, 16))
+        expected[cell] = max(expected.get(cell, -np.inf), float(v))
+    got = tree.coarsen(m, k).leaves()
+    found = {(tuple(c.tolist()), int(d)): float(v)
+             for c, d, v in zip(got.keys.astype(np.int64) - morton.KEY_OFFSET, got.depths, got.log_odds)}
+    assert found == expected
+    assert np.all(np.diff(got.codes.astype(np.float64)) > 0)  # Morton order, one leaf per code
+
+
 # ----------------------------------------------------------------------------- loss
 
 
