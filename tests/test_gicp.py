@@ -3,6 +3,7 @@ against a brute-force NumPy GICP on the small room pair."""
 
 from __future__ import annotations
 
+import importlib
 import math
 
 import numpy as np
@@ -11,7 +12,9 @@ import pytest
 from octomerge_jax import kernel_store, morton, se3
 from octomerge_jax import registration as reg
 from octomerge_jax.map import from_leaves
-from octomerge_jax.registration.gicp import PLANE_EPSILON, ball_offsets, lattice_covariances, smallest_eigenvector
+from octomerge_jax import tree
+from octomerge_jax.registration.gicp import (PLANE_EPSILON, ball_offsets, lattice_covariances, smallest_eigenvector,
+                                             voxel_grid)
 from octomerge_jax.registration.gicp import _solve as gicp_solve
 from octomerge_jax.pipeline import transform_from_xyz_rpy
 from octomerge_jax.sim import small_room_map, small_room_voxels
@@ -19,6 +22,7 @@ from octomerge_jax.sim import small_room_map, small_room_voxels
 from helpers import own_kernel_store
 
 RES = 0.1
+gicp_module = importlib.import_module("octomerge_jax.registration.gicp")  # the name is also the function
 T_TRUE = transform_from_xyz_rpy(0.35, -0.25, 0.0, 0.0, 0.0, math.pi / 4)
 
 
@@ -52,6 +56,54 @@ def test_lattice_covariances_of_a_floor_are_discs():
     np.testing.assert_allclose(C[0], np.diag([1.0, 1.0, PLANE_EPSILON]), atol=1e-5)
     np.testing.assert_allclose(C[1], np.eye(3), atol=0)
     assert len(ball_offsets(2.5)) == 81
+
+
+
+def test_voxel_grid_flags_are_the_maps_occupied_voxels():
+    """Finest leaves on both sides of the origin, a pruned occupied leaf of 4^3 voxels that the
+    box cuts, a free one and one below the threshold: every voxel of the box is flagged exactly
+    when the map's leaves say it is occupied, and the covariances read from the grid are the
+    leaves'."""
+    rng = np.random.default_rng(3)
+    fine = np.unique(rng.integers(-6, 6, (400, 3)), axis=0)
+    fine = fine[~np.all((fine >= 4) & (fine < 8), axis=1) & ~np.all(fine < -4, axis=1)]  # room for the pruned leaves
+    keys = np.concatenate([fine, [[4, 4, 4], [-8, -8, -8], [8, -12, 0]]]) + 32768
+    depths = np.concatenate([np.full(len(fine), 16), [14, 14, 14]])
+    values = np.concatenate([rng.choice([-1.0, 0.1, 2.0], len(fine)), [2.0, -2.0, 1.5]]).astype(np.float32)
+    m = from_leaves(morton.keys_to_codes(keys), depths, values, RES)
+    points = (np.array([[0, 0, 0], [4, 4, 4], [-3, -3, -3]]) + 0.5) * RES  # the box: -5..6 per axis
+    grid = voxel_grid(m, points, 2)
+    lo, dims = np.asarray(grid.lo), np.asarray(grid.dims)
+    np.testing.assert_array_equal(lo, [32768 - 5] * 3)
+    np.testing.assert_array_equal(dims, [12, 12, 12])
+    g = np.stack(np.meshgrid(*[np.arange(int(n)) for n in dims], indexing="ij"), -1).reshape(-1, 3) + lo
+    log_odds, known = tree.lookup(m, (g - 32768 + 0.5) * RES)
+    expected = np.asarray(known) & (np.asarray(log_odds) >= m.params.occupancy_threshold_host)
+    flat = (g - lo) @ np.array([1, dims[0], dims[0] * dims[1]])
+    flags = np.asarray(grid.flags)
+    np.testing.assert_array_equal(flags[flat] > 0, expected)
+    assert 100 < expected.sum() < expected.size and expected[np.all(g - 32768 == 6, axis=1)].all()  # the cut leaf
+    assert flags.sum() == expected.sum()  # nothing flagged outside the box's rows
+    offsets = ball_offsets(2.5)
+    centres = np.asarray((fine[:40] + 0.5) * RES, np.float32)
+    threshold = m.params.occupancy_threshold_host
+    from_grid = lattice_covariances(m, centres, threshold, offsets, voxel_grid(m, centres, 3))
+    np.testing.assert_array_equal(np.asarray(from_grid), np.asarray(lattice_covariances(m, centres, threshold, offsets)))
+    with pytest.raises(ValueError, match="capacity 8 is smaller"):
+        voxel_grid(m, points, 2, capacity=8)
+
+
+def test_gicp_reads_the_grid_as_the_leaves(room_pair, monkeypatch):
+    """``gicp`` with its covariances read from the dense grids ends where it ends looking them up
+    in the maps' leaves (a box over ``MAX_GRID_VOXELS``), to the bit."""
+    m1, m2, p1, p2 = room_pair
+    start = transform_from_xyz_rpy(0.04, -0.05, 0.0, 0.0, 0.0, 0.03) @ T_TRUE
+    a = reg.gicp(m1, m2, p1, p2, start, max_correspondence_distance=2 * RES)
+    monkeypatch.setattr(gicp_module, "MAX_GRID_VOXELS", 0)
+    assert gicp_module._prepare(m1, m2, p1, p2, start, 2 * RES, 16384, 2.5, 0).voxels == (None, None)
+    b = reg.gicp(m1, m2, p1, p2, start, max_correspondence_distance=2 * RES)
+    np.testing.assert_array_equal(a.T_1_2, b.T_1_2)
+    assert (a.num_iterations, a.num_inliers, a.rmse) == (b.num_iterations, b.num_inliers, b.rmse)
 
 
 def _numpy_gicp(m1, m2, p1, p2, T, mcd, iterations=40):

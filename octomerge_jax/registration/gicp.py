@@ -7,10 +7,12 @@ GICP (Segal, Haehnel and Thrun, "Generalized-ICP", RSS 2009) minimises, over ``T
 over sample points ``x_j`` of map 2 matched to their nearest occupied voxel centre ``p1_n(j)``
 of map 1 within ``max_correspondence_distance``: a plane-to-plane distance. Each covariance is
 that of the occupied voxel centres within ``radius_voxels`` voxels of the point, looked up in
-its own map by Morton key (the 81 lattice offsets of a 2.5-voxel ball; a pruned occupied leaf
-counts as all its voxels), with its eigenvalues replaced by ``(1e-3, 1, 1)``: a disc along the
-local surface, the plane regularisation of fast_gicp / small_gicp. Each covariance is computed
-once: the samples' before the iterations, a target's when a sample first matches it.
+its own map (the 81 lattice offsets of a 2.5-voxel ball; a pruned occupied leaf counts as all
+its voxels), with its eigenvalues replaced by ``(1e-3, 1, 1)``: a disc along the local surface,
+the plane regularisation of fast_gicp / small_gicp. The lookups read a dense grid of occupied
+flags over the box of the points (``VoxelGrid``, one gather each), or, for a box over
+``MAX_GRID_VOXELS``, the map's leaves by Morton key (a binary search each). Each covariance is
+computed once: the samples' before the iterations, a target's when a sample first matches it.
 Gauss-Newton steps update ``T`` on the left (``exp(xi) T``) until the step falls below
 ``STEP_ROTATION_RAD`` and ``STEP_TRANSLATION_VOXELS``, or the energy has not reached a new low
 for ``STALL_PATIENCE`` steps (then the lowest-energy iterate is returned).
@@ -35,14 +37,16 @@ from ..map import OccupancyMap
 from . import neighbors
 from ._icp import pad_points_host
 
-__all__ = ["GICP_MIN_POINTS", "GicpResult", "gicp", "lattice_covariances", "ball_offsets", "precompile_gicp",
-           "smallest_eigenvector"]
+__all__ = ["GICP_MIN_POINTS", "MAX_GRID_VOXELS", "GicpResult", "VoxelGrid", "gicp", "lattice_covariances",
+           "ball_offsets", "precompile_gicp", "smallest_eigenvector", "voxel_grid"]
 
 PLANE_EPSILON = 1e-3  # the regularised covariances' normal eigenvalue (in-plane ones are 1)
 # a step below both ends the iteration (docs/design.md, "GICP polishes the default refinement")
 STEP_ROTATION_RAD, STEP_TRANSLATION_VOXELS = 1e-4, 1e-2
 STALL_PATIENCE = 3  # steps without a new lowest energy end a cycle of correspondence sets
 GICP_MIN_POINTS = 6  # fewer points in either cloud is an error (a rigid pose needs 3; 6 for some redundancy)
+#: a covariance box of more voxels than this is looked up in the map's leaves instead of a dense grid (32 MiB of flags)
+MAX_GRID_VOXELS = 1 << 25
 
 
 class GicpResult(NamedTuple):
@@ -65,18 +69,86 @@ def ball_offsets(radius_voxels: float) -> np.ndarray:
     return o[np.sum(o * o, axis=1) <= radius_voxels ** 2 + 1e-9].astype(np.int32)
 
 
-def lattice_covariances(m: OccupancyMap, points, occupied_log_odds, offsets):
+class VoxelGrid(NamedTuple):
+    """Occupied flags of a box of one map's finest voxels (``voxel_grid``; a pytree)."""
+
+    flags: jax.Array  # (G,) uint8, 1 where the voxel is occupied; x fastest, then y, then z; padded with 0
+    lo: jax.Array  # (3,) int32, the box's first voxel key (OctoMap key, KEY_OFFSET at the origin)
+    dims: jax.Array  # (3,) int32, the box's voxels per axis
+
+
+def _grid_box(points, resolution: float, reach_voxels: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo (3,), dims (3,))`` int64: the voxel keys of ``points (P, 3)`` [m] grown by
+    ``reach_voxels`` per side, within the key range."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if pts.shape[0] == 0:
+        return np.zeros(3, np.int64), np.ones(3, np.int64)
+    top = 2 * morton.KEY_OFFSET - 1
+    base = np.floor(pts / float(resolution)).astype(np.int64) + morton.KEY_OFFSET
+    lo = np.clip(base.min(axis=0) - int(reach_voxels), 0, top)
+    hi = np.clip(base.max(axis=0) + int(reach_voxels), 0, top)
+    return lo, hi - lo + 1
+
+
+def voxel_grid(m: OccupancyMap, points, reach_voxels: int, capacity: int | None = None) -> VoxelGrid | None:
+    """Host: ``m``'s occupied voxels (``log_odds >= `` its occupancy threshold; a pruned leaf
+    counts as all its voxels) as flags over the box of the voxels of ``points (P, 3)`` [m]
+    grown by ``reach_voxels`` per side. ``capacity``: the flags' length (at least the box's
+    voxels; default ``bucket_capacity`` of them). ``None`` when the box holds more than
+    ``MAX_GRID_VOXELS`` voxels (then look the map up by key)."""
+    lo, dims = _grid_box(points, m.resolution, reach_voxels)
+    cells = int(np.prod(dims))
+    if cells > MAX_GRID_VOXELS:
+        return None
+    capacity = bucket_capacity(cells) if capacity is None else int(capacity)
+    if capacity < cells:
+        raise ValueError(f"voxel_grid: capacity {capacity} is smaller than the box's {cells} voxels")
+    return _filled_grid(m, lo, dims, capacity)
+
+
+def _filled_grid(m: OccupancyMap, lo, dims, capacity: int) -> VoxelGrid:
+    """``voxel_grid`` of the box of ``dims (3,)`` voxels from key ``lo (3,)``."""
+    hi = lo + dims - 1
+    lv = m.leaves()
+    occupied = lv.log_odds >= m.params.occupancy_threshold_host
+    first = lv.keys[occupied].astype(np.int64)
+    side = np.left_shift(np.int64(1), morton.TREE_DEPTH - lv.depths[occupied].astype(np.int64))
+    a, b = np.maximum(first, lo), np.minimum(first + side[:, None], hi + 1)  # each leaf's part of the box
+    inside = np.all(a < b, axis=1)
+    a, extent = a[inside] - lo, (b - a)[inside]
+    n = np.prod(extent, axis=1)  # voxels per leaf part; the leaves are disjoint, so at most ``cells`` in all
+    i = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)  # voxel within its leaf part
+    ex, ey = np.repeat(extent[:, 0], n), np.repeat(extent[:, 1], n)
+    v = np.repeat(a, n, axis=0) + np.stack([i % ex, (i // ex) % ey, i // (ex * ey)], axis=1)
+    flags = np.zeros(capacity, np.uint8)
+    flags[v[:, 0] + dims[0] * (v[:, 1] + dims[1] * v[:, 2])] = 1
+    return VoxelGrid(to_device(flags), to_device(lo, np.int32), to_device(dims, np.int32))
+
+
+def _occupied_at(m: OccupancyMap, grid: VoxelGrid | None, keys, occupied_log_odds):
+    """``keys (..., 3)`` int32 voxel keys are occupied voxels of ``m``: read in ``grid`` (keys
+    outside its box are not), else looked up in ``m``'s leaves."""
+    if grid is not None:
+        rel = keys - grid.lo
+        inside = jnp.all((rel >= 0) & (rel < grid.dims), axis=-1)
+        flat = rel[..., 0] + grid.dims[0] * (rel[..., 1] + grid.dims[1] * rel[..., 2])
+        return inside & (grid.flags[jnp.where(inside, flat, 0)] > 0)
+    in_range = jnp.all((keys >= 0) & (keys < 2 * morton.KEY_OFFSET), axis=-1)
+    row, known = tree.lookup_words(m, morton.keys_to_words(jnp.clip(keys, 0, 2 * morton.KEY_OFFSET - 1)))
+    return known & in_range & (m.log_odds[row] >= occupied_log_odds)
+
+
+def lattice_covariances(m: OccupancyMap, points, occupied_log_odds, offsets, grid: VoxelGrid | None = None):
     """Plane-regularised covariances ``(P, 3, 3)`` float32 [unitless] of voxel centres ``points
     (P, 3)`` [m] of ``m``'s frame: the covariance of the occupied voxel centres of ``m`` at the
     lattice ``offsets (k, 3)`` around each point (``log_odds >= occupied_log_odds``), its
     eigenvalues set to ``(PLANE_EPSILON, 1, 1)``. A point with fewer than 3 occupied neighbours
-    gets the identity."""
+    gets the identity. ``grid``: ``m``'s ``voxel_grid`` around the points, read instead of the
+    leaves (the same flags where the box reaches ``max |offsets|`` voxels past every point)."""
     res = jnp.float32(m.resolution)
     base = jnp.round(points / res - 0.5).astype(jnp.int32)  # voxel index of each centre
     keys = base[:, None, :] + morton.KEY_OFFSET + jnp.asarray(offsets)[None]  # (P, k, 3)
-    in_range = jnp.all((keys >= 0) & (keys < 2 * morton.KEY_OFFSET), axis=-1)
-    row, known = tree.lookup_words(m, morton.keys_to_words(jnp.clip(keys, 0, 2 * morton.KEY_OFFSET - 1)))
-    w = (known & in_range & (m.log_odds[row] >= occupied_log_odds)).astype(jnp.float32)  # (P, k)
+    w = _occupied_at(m, grid, keys, occupied_log_odds).astype(jnp.float32)  # (P, k)
     o = jnp.asarray(offsets, jnp.float32)
     n = jnp.sum(w, axis=1)
     mean = (w @ o) / jnp.maximum(n, 1.0)[:, None]
@@ -87,17 +159,17 @@ def lattice_covariances(m: OccupancyMap, points, occupied_log_odds, offsets):
     return jnp.where((n >= 3)[:, None, None], C, jnp.eye(3, dtype=jnp.float32))
 
 
-def _covariances_of_rows(m: OccupancyMap, points, count, occupied_log_odds, offsets, block: int = 4096):
+def _covariances_of_rows(m: OccupancyMap, grid, points, count, occupied_log_odds, offsets, block: int = 4096):
     """``lattice_covariances`` of the first ``count`` (traced) rows of ``points (P, 3)``, in blocks
     of ``block`` rows; blocks past ``count`` are skipped (identity)."""
     P = points.shape[0]
     if P <= block or P % block:
-        return lattice_covariances(m, points, occupied_log_odds, offsets)
+        return lattice_covariances(m, points, occupied_log_odds, offsets, grid)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), (block, 3, 3))
 
     def one(args):
         i, rows = args
-        return jax.lax.cond(i * block < count, lambda: lattice_covariances(m, rows, occupied_log_odds, offsets),
+        return jax.lax.cond(i * block < count, lambda: lattice_covariances(m, rows, occupied_log_odds, offsets, grid),
                             lambda: eye)
 
     return jax.lax.map(one, (jnp.arange(P // block), points.reshape(-1, block, 3))).reshape(P, 3, 3)
@@ -152,16 +224,17 @@ class _State(NamedTuple):
 
 
 @stored_jit(static_argnames=("offsets", "max_iterations"))
-def _solve(m1, m2, grid, targets, samples, count, T0, centre, thresholds, mcd, *, offsets, max_iterations):
+def _solve(m1, m2, voxels, grid, targets, samples, count, T0, centre, thresholds, mcd, *, offsets, max_iterations):
     """Gauss-Newton on the GICP energy in map 1's frame centred at ``centre``: ``(T (4, 4)
     float32, steps, settled, inliers, rmse [m])``. ``targets``: the points ``grid`` holds
     (centred); a target's covariance is computed the first time a sample matches it and kept,
-    the samples' once before the loop. Correspondence sets can cycle; then the iterate of the
-    lowest energy is returned once it has not been beaten for ``STALL_PATIENCE`` steps."""
+    the samples' once before the loop, both from ``voxels`` (the maps' ``VoxelGrid`` or ``None``
+    each). Correspondence sets can cycle; then the iterate of the lowest energy is returned once
+    it has not been beaten for ``STALL_PATIENCE`` steps."""
     off = np.asarray(offsets, np.int32)
     S, n_targets = samples.shape[0], targets.shape[0]
     valid = jnp.arange(S) < count
-    C2 = _covariances_of_rows(m2, samples, count, thresholds[1], off)
+    C2 = _covariances_of_rows(m2, voxels[1], samples, count, thresholds[1], off)
     mcd2 = mcd * mcd
     res = jnp.float32(m1.resolution)
 
@@ -176,7 +249,7 @@ def _solve(m1, m2, grid, targets, samples, count, T0, centre, thresholds, mcd, *
         need = inlier & ~s.have[jnp.maximum(idx, 0)]
         rows = nonzero_rows(need, S, S)
         new = idx.at[rows].get(mode="fill", fill_value=n_targets)  # n_targets: padding, dropped
-        C = _covariances_of_rows(m1, targets.at[new].get(mode="fill", fill_value=0.0) + centre,
+        C = _covariances_of_rows(m1, voxels[0], targets.at[new].get(mode="fill", fill_value=0.0) + centre,
                                  count_true(need), thresholds[0], off)
         return s.C1.at[new].set(C, mode="drop"), s.have.at[new].set(True, mode="drop")
 
@@ -248,6 +321,7 @@ class _Prepared(NamedTuple):
     n_targets: jax.Array  # () int32 valid rows of ``targets``
     mcd: float  # [m] correspondence distance
     table_size: int  # the target grid's hash table size
+    voxels: tuple  # (VoxelGrid, VoxelGrid) of map 1 around the targets and map 2 around the samples, or (None, None)
     arguments: tuple  # ``_solve``'s dynamic arguments after ``grid`` and ``targets``
     offsets: tuple  # ``_solve``'s static lattice offsets
 
@@ -263,6 +337,7 @@ def _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance
         if p.shape[0] < GICP_MIN_POINTS:
             raise ValueError(f"gicp: {name} has {p.shape[0]} points, fewer than {GICP_MIN_POINTS}")
     T_init = np.asarray(T_1_2_init, np.float64)
+    voxels = _voxel_grids(m1, m2, p1, p2, radius_voxels)
     # only points that can find a partner (the pose moves little): each cloud cut to the other's
     # bounding box under the start, grown by twice the correspondence distance
     pad = 2.0 * float(max_correspondence_distance) + 2.0 * m1.resolution
@@ -280,8 +355,22 @@ def _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance
     arguments = (to_device(samples), to_device(n2, np.int32), to_device(T0, np.float32),
                  to_device(centre, np.float32), thresholds, to_device(max_correspondence_distance, np.float32))
     return _Prepared(T_init, centre, p2, targets, to_device(n1, np.int32), float(max_correspondence_distance),
-                     neighbors.grid_table_size(target.shape[0], 4.0), arguments,
-                     tuple(map(tuple, ball_offsets(radius_voxels).tolist())))
+                     neighbors.grid_table_size(target.shape[0], 4.0), voxels,
+                     arguments, tuple(map(tuple, ball_offsets(radius_voxels).tolist())))
+
+
+def _voxel_grids(m1, m2, p1, p2, radius_voxels) -> tuple:
+    """Both maps' ``voxel_grid`` around all of their points ``p1``, ``p2`` (the targets and samples
+    whose covariances ``_solve`` computes are among them; a box that does not depend on the pose
+    keeps one program per pair), of one capacity (one program for both), reaching a voxel past
+    the lattice ball (float32 rounding of the points on the device); ``(None, None)`` when either
+    box is over ``MAX_GRID_VOXELS``."""
+    reach = int(np.floor(radius_voxels)) + 1
+    boxes = [_grid_box(p, m1.resolution, reach) for p in (p1, p2)]
+    cells = max(int(np.prod(dims)) for _, dims in boxes)
+    if cells > MAX_GRID_VOXELS:
+        return None, None
+    return tuple(_filled_grid(m, lo, dims, bucket_capacity(cells)) for m, (lo, dims) in zip((m1, m2), boxes))
 
 
 def precompile_gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *,
@@ -294,7 +383,7 @@ def precompile_gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_
                     seed)
     grid = jax.eval_shape(lambda t, n: neighbors.build_grid(t, n, prep.mcd, table_size=prep.table_size),
                           prep.targets, prep.n_targets)
-    return _solve.precompile(m1, m2, grid, prep.targets, *prep.arguments, offsets=prep.offsets,
+    return _solve.precompile(m1, m2, prep.voxels, grid, prep.targets, *prep.arguments, offsets=prep.offsets,
                              max_iterations=int(max_iterations))
 
 
@@ -319,8 +408,8 @@ def gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_2_init, *, 
     prep = _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance, num_samples, radius_voxels,
                     seed)
     grid = neighbors.build_grid(prep.targets, prep.n_targets, prep.mcd, table_size=prep.table_size)
-    T, k, settled, n_in, rmse = _solve(m1, m2, grid, prep.targets, *prep.arguments, offsets=prep.offsets,
-                                       max_iterations=int(max_iterations))
+    T, k, settled, n_in, rmse = _solve(m1, m2, prep.voxels, grid, prep.targets, *prep.arguments,
+                                       offsets=prep.offsets, max_iterations=int(max_iterations))
     T_init, centre, p2 = prep.T_init, prep.centre, prep.sources
     T = np.asarray(T, np.float64)
     finite = bool(np.all(np.isfinite(T)))
