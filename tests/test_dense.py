@@ -427,6 +427,22 @@ def test_merge_multi_recovers_a_1_7_rad_yaw_error():
     assert 2 <= rep.icp["num_basins"] < rep.icp["num_hypotheses"] == 16, rep.icp
 
 
+def test_leaf_index_solves_as_the_whole_searches(pair, problem):
+    """``prepare_alignment`` indexes map 1's leaves per level (and map 2's in the reverse
+    problem); a solve through the indexes ends where whole binary searches end, to the bit;
+    ``stack_problems`` drops them (the pairs' indexes differ in size)."""
+    assert problem.index1 is not None and problem.index1.start.shape[0] == problem.num_levels
+    assert problem.reverse.index1 is not None
+    bare = dataclasses.replace(problem, index1=None, reverse=dataclasses.replace(problem.reverse, index1=None))
+    T0 = np.stack([perturbed(0.05, -0.04, 0.0, 0, 0, 0.01), perturbed(-0.03, 0.05, 0.02, 0.01, 0, -0.02)])
+    a = dense.solve_alignment(problem, T0, maxiter=MAXITER)
+    b = dense.solve_alignment(bare, T0, maxiter=MAXITER)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    stacked = dense.stack_problems([problem, problem])
+    assert stacked.index1 is None and stacked.reverse.index1 is None
+
+
 def test_start_level_skips_the_coarse_levels(pair, problem):
     """``start_level=j`` solves exactly the levels ``j..`` (the coarser ones leave the pose as
     it is): the same pose as a problem holding only those levels, no iterations and a NaN
@@ -440,7 +456,8 @@ def test_start_level_skips_the_coarse_levels(pair, problem):
         return dataclasses.replace(
             p, map1=jax.tree_util.tree_map(fine, p.map1), scale=fine(p.scale), points2=fine(p.points2),
             signed2=fine(p.signed2), weight2=fine(p.weight2), occupied2=fine(p.occupied2),
-            coverage_norm=fine(p.coverage_norm), levels=p.levels[j:], reverse=p.reverse)  # finest level only
+            coverage_norm=fine(p.coverage_norm), levels=p.levels[j:], reverse=p.reverse,
+            index1=jax.tree_util.tree_map(fine, p.index1))  # finest level only
 
     ref = dense.solve_alignment(only_fine(problem), T0, maxiter=MAXITER)
     np.testing.assert_allclose(np.asarray(r.T_1_2), np.asarray(ref.T_1_2), atol=1e-5)
@@ -471,7 +488,7 @@ def test_coarse_levels_that_end_worse_than_the_start_are_dropped(pair):
     coarse = jnp.asarray([True, True, False])
     map1 = jax.tree_util.tree_map(
         lambda a, b: jnp.where(coarse.reshape((-1,) + (1,) * (jnp.ndim(a) - 1)), b, a), p.map1, p_shifted.map1)
-    biased = dataclasses.replace(p, map1=map1)
+    biased = dataclasses.replace(p, map1=map1, index1=None)  # the index describes p's map1
     starts = np.stack([perturbed(0.05, -0.03, 0, 0, 0, 0.01), perturbed(-0.04, 0.02, 0, 0, 0, -0.01)])
     batched = dense.solve_alignment(biased, starts, maxiter=MAXITER)
     for i, T0 in enumerate(starts):

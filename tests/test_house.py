@@ -12,8 +12,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "octomerge_jax"
 
 # lowest first; a module may import its own layer and the ones below
 LAYERS = [
-    ("core", ["_ops", "_sort", "_fileutil", "types", "se3", "morton", "map", "tree", "hostmem", "budget",
-              "kernel_store"]),
+    ("core", ["_ops", "_sort", "_fileutil", "types", "se3", "morton", "map", "tree", "leaf_index", "hostmem",
+              "budget", "kernel_store"]),
     ("kernels", ["updates", "insert", "resample", "fusion"]),
     ("side", ["io", "sim", "examples"]),
     ("solvers", ["registration"]),

@@ -225,3 +225,44 @@ def test_leaves_cache_computes_each_maps_leaves_once_read_only():
             np.testing.assert_array_equal(a, b)
         assert other.leaves() is not first and other.leaves().codes.shape == (2,)
     assert m.leaves() is not first and m.leaves().centers.flags.writeable
+
+
+@pytest.mark.parametrize("shift", [2, 3])
+def test_leaf_index_lookups_find_the_leaves_the_whole_search_finds(shift):
+    """``leaf_index.lookup_keys``: leaves of depths 12-16 on both sides of the origin, keys in
+    and around them, outside the box and outside the key range: the same rows and known flags
+    as ``tree.lookup_words`` (a key outside the key range is unknown)."""
+    import jax.numpy as jnp
+
+    from octomerge_jax.leaf_index import key_box, leaf_index, lookup_keys
+
+    rng = np.random.default_rng(shift)
+    fine = np.unique(rng.integers(-20, 20, (3000, 3)), axis=0)
+    coarse = np.array([[-64, -64, 0], [32, -32, -32], [-48, 16, -16]])  # depths 12, 13, 14 (16, 8, 4 voxels)
+    sides = np.array([64, 32, 16])
+    blocked = np.zeros(len(fine), bool)
+    for c, w in zip(coarse, sides):
+        blocked |= np.all((fine >= c) & (fine < c + w), axis=1)
+    keys = np.concatenate([fine[~blocked], coarse]) + morton.KEY_OFFSET
+    depths = np.concatenate([np.full((~blocked).sum(), 16), [12, 13, 14]])
+    m = om.from_leaves(morton.keys_to_codes(keys.astype(np.uint64)), depths,
+                       rng.normal(size=len(keys)).astype(np.float32), 0.1)
+    index = leaf_index(m, shift=shift)
+    assert index.shift == shift
+    first, last = key_box(m)
+    near = keys[rng.integers(0, len(keys), 15000)] + rng.integers(-2, 3, (15000, 3))
+    inside_coarse = (coarse + morton.KEY_OFFSET)[rng.integers(0, 3, 3000)] + rng.integers(0, 16, (3000, 3))
+    query = np.concatenate([rng.integers(first - 5, last + 6, (5000, 3)), near, inside_coarse,
+                            [[-1, 0, 0], [70000, 32768, 32768], [32768, 32768, 65536]]]).astype(np.int32)
+    row, known = lookup_keys(m, jnp.asarray(query), index)
+    ref_row, ref_known = tree.lookup_words(m, morton.keys_to_words(jnp.clip(jnp.asarray(query), 0, 65535)))
+    in_range = np.all((query >= 0) & (query < 65536), axis=1)
+    ref_known = np.asarray(ref_known) & in_range
+    np.testing.assert_array_equal(np.asarray(known), ref_known)
+    np.testing.assert_array_equal(np.asarray(row)[ref_known], np.asarray(ref_row)[ref_known])
+    assert 1500 < ref_known.sum() < len(query) - 1500
+    assert set(np.asarray(m.depth)[np.asarray(row)[ref_known]]) >= {12, 13, 14, 16}
+    with pytest.raises(ValueError, match="capacity 4 is smaller"):
+        leaf_index(m, capacity=4, shift=shift)
+    with pytest.raises(ValueError, match="outside the given box"):
+        leaf_index(m, shift=shift, box=(first + 40, last))

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ... import morton, se3, tree
+from ...leaf_index import LeafIndex, lookup_keys
 from ...map import OccupancyMap
 from ._problem import AlignProblem, Level, LevelPair, both_at, prepare_alignment
 
@@ -53,19 +54,23 @@ class _LevelTerms(NamedTuple):
     corners: _Corners
 
 
-def _corners(m1: OccupancyMap, y) -> _Corners:
+def _corners(m1: OccupancyMap, y, index: LeafIndex | None = None) -> _Corners:
     """The 8 voxel centres of ``m1`` around points ``y (P, 3)`` [m] of map 1's frame (the
-    lookups are piecewise constant, so gradients reach ``y`` only through the weights)."""
+    lookups are piecewise constant, so gradients reach ``y`` only through the weights),
+    looked up through ``m1``'s ``index`` when given."""
     u = y / jnp.float32(m1.resolution) - jnp.float32(0.5)  # centres at integer u
     finite = jnp.all(jnp.isfinite(u), axis=-1)
     base = jax.lax.stop_gradient(jnp.floor(jnp.where(finite[:, None], u, 0.0)))
     f = jnp.where(finite[:, None], u - base, 0.0)
     base = jnp.clip(base, -morton.KEY_OFFSET - 2, morton.KEY_OFFSET + 1).astype(jnp.int32)
     keys = base[:, None, :] + morton.KEY_OFFSET + jnp.asarray(_CORNERS)  # (P, 8, 3)
-    in_range = jnp.all((keys >= 0) & (keys < 2 * morton.KEY_OFFSET), axis=-1)
-    words = morton.keys_to_words(jnp.clip(keys, 0, 2 * morton.KEY_OFFSET - 1))
-    row, known = tree.lookup_words(m1, words)
-    known = known & in_range & finite[:, None]
+    if index is not None:
+        row, known = lookup_keys(m1, keys, index)
+    else:
+        in_range = jnp.all((keys >= 0) & (keys < 2 * morton.KEY_OFFSET), axis=-1)
+        row, known = tree.lookup_words(m1, morton.keys_to_words(jnp.clip(keys, 0, 2 * morton.KEY_OFFSET - 1)))
+        known = known & in_range
+    known = known & finite[:, None]
     c = jnp.asarray(_CORNERS, jnp.float32)  # (8, 3)
     w = jnp.prod(jnp.where(c == 1, f[:, None, :], 1.0 - f[:, None, :]), axis=-1)  # (P, 8)
     return _Corners(w, known, m1.log_odds[row])
@@ -83,7 +88,7 @@ def _signed_field(corners: _Corners):
 def _level_terms(lv: Level, T_1_2) -> _LevelTerms:
     """The one-way loss of level ``lv`` under ``T_1_2 (4, 4)`` (module docstring)."""
     y = se3.transform_points(jnp.asarray(T_1_2, jnp.float32), lv.points2)
-    corners = _corners(lv.map1, y * lv.scale)
+    corners = _corners(lv.map1, y * lv.scale, lv.index)
     s1, cov = _signed_field(corners)
     w, a = lv.weight2, lv.coverage_norm
     den = a * (jnp.sum(w * cov) + _OVERLAP_PRIOR * jnp.sum(w)) + (1.0 - a) * jnp.sum(w)

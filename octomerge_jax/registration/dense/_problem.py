@@ -13,6 +13,7 @@ import numpy as np
 
 from ... import morton, se3
 from ..._ops import is_traced, to_device
+from ...leaf_index import LeafIndex, index_shift, key_box, leaf_index
 from ...map import OccupancyMap, bucket_capacity
 from ...tree import coarsen
 
@@ -49,6 +50,10 @@ class AlignProblem:
     - ``reverse``: the finest level's problem with the maps' roles swapped (map 2 sampled at
       map 1's points; one level), or ``None``; with it the finest level's loss is symmetric;
       the coarser levels and the status checks stay map 2 -> 1.
+    - ``index1``: ``map1``'s ``leaf_index`` per level (arrays stacked like ``map1``'s), which
+      narrows the loss's lookups to a few leaves each (the same leaves), or ``None`` (whole
+      binary searches). It describes ``map1``: a problem built with another ``map1`` needs its
+      own index or ``None``.
     """
 
     map1: OccupancyMap
@@ -62,6 +67,7 @@ class AlignProblem:
     coverage_norm: jax.Array
     levels: tuple = dataclasses.field(metadata=dict(static=True), default=(0,))
     reverse: "AlignProblem | None" = None
+    index1: LeafIndex | None = None
 
     @property
     def num_levels(self) -> int:
@@ -78,6 +84,7 @@ class Level(NamedTuple):
     weight2: jax.Array         # (P,) float32, sample weights (sum 1)
     occupied2: jax.Array       # (P,) bool, occupied in map 2
     coverage_norm: jax.Array   # () float32 in [0, 1]
+    index: LeafIndex | None = None  # map1's leaf index, or None
 
 
 class LevelPair(NamedTuple):
@@ -91,8 +98,9 @@ class LevelPair(NamedTuple):
 def level_at(problem: AlignProblem, i) -> Level:
     """Level ``i`` (int or traced) of an unbatched problem."""
     take = lambda a: a[i]  # noqa: E731
+    index = None if problem.index1 is None else jax.tree_util.tree_map(take, problem.index1)
     return Level(jax.tree_util.tree_map(take, problem.map1), problem.scale[i], problem.points2[i],
-                 problem.signed2[i], problem.weight2[i], problem.occupied2[i], problem.coverage_norm[i])
+                 problem.signed2[i], problem.weight2[i], problem.occupied2[i], problem.coverage_norm[i], index)
 
 
 def both_at(problem: AlignProblem, i) -> LevelPair:
@@ -132,6 +140,7 @@ class _LevelSamples(NamedTuple):
     """Host arrays of one level before padding (``n`` sample points of map 2)."""
 
     map1: OccupancyMap     # map 1 coarsened by 2^k, labelled at the finest resolution
+    box1: tuple            # (first, last) (3,) int64: the keys map1's leaves cover (leaf_index.key_box)
     points: np.ndarray     # (n, 3) float64 [m], frame 2
     signed: np.ndarray     # (n,) float64, tanh(l / 2)
     weight: np.ndarray     # (n,) float64, sum 1
@@ -158,9 +167,10 @@ def _cell_samples(m: OccupancyMap, mask: np.ndarray, budget: int, rng,
     return centres, lo[leaf]
 
 
-def _level_samples(m1: OccupancyMap, m2: OccupancyMap, k: int, max_points: int, free_weight: float,
+def _level_samples(m1: OccupancyMap, m2: OccupancyMap, box1, k: int, max_points: int, free_weight: float,
                    rng, jitter: bool) -> _LevelSamples:
-    """Host: level ``k``'s coarse map 1 and map 2's weighted sample points (occupied first)."""
+    """Host: level ``k``'s coarse map 1 (``box1``: the keys ``m1``'s leaves cover) and map 2's
+    weighted sample points (occupied first)."""
     c1 = coarsen(m1, k, resolution=m1.resolution)
     c2 = coarsen(m2, k)
     lv2 = c2.leaves()
@@ -174,7 +184,13 @@ def _level_samples(m1: OccupancyMap, m2: OccupancyMap, k: int, max_points: int, 
     w = np.concatenate([np.full(n_occ, 1.0 / max(n_occ, 1)),
                         np.full(n_free, float(free_weight) / max(n_free, 1))])
     w = w / max(w.sum(), 1e-30)
-    return _LevelSamples(c1, pts, np.tanh(lo / 2.0), w, np.arange(pts.shape[0]) < n_occ)
+    return _LevelSamples(c1, _coarsened_box(box1, k), pts, np.tanh(lo / 2.0), w, np.arange(pts.shape[0]) < n_occ)
+
+
+def _coarsened_box(box, k: int) -> tuple:
+    """The key box ``(first, last)`` of a map's leaves after ``coarsen(., k)`` (each key
+    ``K`` relabelled ``KEY_OFFSET + (K - KEY_OFFSET) >> k``: monotone per axis)."""
+    return tuple(((np.asarray(b, np.int64) - morton.KEY_OFFSET) >> k) + morton.KEY_OFFSET for b in box)
 
 
 def _checked_levels(m1: OccupancyMap, m2: OccupancyMap, levels, max_points, free_weight) -> tuple:
@@ -225,6 +241,7 @@ def _assemble(built, levels: tuple, mcap: int, pcap: int, center, radius: float,
         return out
 
     maps = [b.map1.with_capacity(mcap) for b in built]
+    indexes = None if is_traced(*jax.tree_util.tree_leaves(maps)) else _level_indexes(maps, [b.box1 for b in built])
     return AlignProblem(
         # stacked on the host unless traced: a device stack compiles a program per leaf shape
         map1=jax.tree_util.tree_map(lambda *a: jnp.stack(a) if is_traced(*a) else to_device(
@@ -239,7 +256,22 @@ def _assemble(built, levels: tuple, mcap: int, pcap: int, center, radius: float,
         coverage_norm=to_device(cn, np.float32),
         levels=levels,
         reverse=reverse,
+        index1=indexes,
     )
+
+
+def _level_indexes(maps, boxes) -> LeafIndex | None:
+    """The levels' ``leaf_index`` stacked (one cell size and capacity for all), or ``None``
+    when a level's box does not fit ``MAX_INDEX_CELLS`` at any cell size."""
+    shifts = [index_shift(b) for b in boxes]
+    if any(s is None for s in shifts):
+        return None
+    s = max(shifts)
+    cells = max(int(np.prod((last >> s) - (first >> s) + 1)) for first, last in boxes)
+    indexes = [leaf_index(m, bucket_capacity(cells), s, box) for m, box in zip(maps, boxes)]
+    if any(i is None for i in indexes):
+        return None
+    return jax.tree_util.tree_map(lambda *a: to_device(np.stack([np.asarray(x) for x in a])), *indexes)
 
 
 def prepare_alignment(m1: OccupancyMap, m2: OccupancyMap, *, levels=None,
@@ -281,7 +313,8 @@ def prepare_alignment(m1: OccupancyMap, m2: OccupancyMap, *, levels=None,
     """
     levels = _checked_levels(m1, m2, levels, max_points, free_weight)
     rng = np.random.default_rng(seed)
-    built = [_level_samples(m1, m2, k, int(max_points), float(free_weight), rng, bool(jitter))
+    box1 = key_box(m1)
+    built = [_level_samples(m1, m2, box1, k, int(max_points), float(free_weight), rng, bool(jitter))
              for k in levels]
     mcap, pcap = _capacities(built, map_capacity, point_capacity)
     center, radius = _pivot(built[-1].points, m2.resolution)
@@ -322,4 +355,7 @@ def stack_problems(problems) -> AlignProblem:
                                        or r.points2.shape != r0.points2.shape))):
             raise ValueError(f"problems[{i}] differs from problems[0] in levels, resolution or "
                              "capacities; prepare them with equal map_capacity and point_capacity")
-    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *problems)
+    # the pairs' leaf indexes differ in size: the stacked problem searches whole leaf arrays
+    bare = [dataclasses.replace(p, index1=None, reverse=None if p.reverse is None else
+                                dataclasses.replace(p.reverse, index1=None)) for p in problems]
+    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *bare)
