@@ -20,6 +20,7 @@ import numpy as np
 
 from . import morton
 from ._ops import bucket_capacity, to_device
+from .budget import current_budget
 from .map import OccupancyMap
 
 __all__ = ["MAX_INDEX_CELLS", "LeafIndex", "index_shift", "key_box", "leaf_index", "lookup_keys"]
@@ -28,6 +29,7 @@ __all__ = ["MAX_INDEX_CELLS", "LeafIndex", "index_shift", "key_box", "leaf_index
 MAX_INDEX_CELLS = 1 << 20
 _MAX_SHIFT = 4  # cells of up to 16^3 voxels (13 halvings)
 _KEY_LIMIT = 2 * morton.KEY_OFFSET
+_HOST_BYTES_PER_CELL = 64  # the cells' keys and codes while building (int64 / uint64), then 8 bytes of rows
 
 
 @jax.tree_util.register_dataclass
@@ -67,7 +69,8 @@ def leaf_index(m: OccupancyMap, capacity: int | None = None, shift: int | None =
     finest keys; default ``key_box(m)``, which decodes the leaves) cut into cells of
     ``2^shift`` voxels per edge (default ``index_shift(box)``). ``capacity``: rows of
     ``start`` / ``end`` (at least the box's cells; default ``bucket_capacity`` of them).
-    ``None`` for a map without leaves or a box that does not fit ``MAX_INDEX_CELLS``.
+    ``None`` for a map without leaves, a box that does not fit ``MAX_INDEX_CELLS``, or one whose
+    building would take over a quarter of the memory budget (``budget.current_budget``).
     Raises ``ValueError`` when ``capacity`` is smaller than the box's cells or a leaf lies
     outside ``box``."""
     n = m.num_leaves
@@ -80,12 +83,12 @@ def leaf_index(m: OccupancyMap, capacity: int | None = None, shift: int | None =
     lo = first >> s
     dims = (last >> s) - lo + 1
     cells = int(np.prod(dims))
-    if cells > MAX_INDEX_CELLS:
+    if cells > MAX_INDEX_CELLS or _HOST_BYTES_PER_CELL * cells > current_budget() // 4:
         return None
     capacity = bucket_capacity(cells) if capacity is None else int(capacity)
     if capacity < cells:
         raise ValueError(f"leaf_index: capacity {capacity} is smaller than the box's {cells} cells")
-    g = [np.arange(int(n), dtype=np.int64) for n in dims]
+    g = [np.arange(int(d), dtype=np.int64) for d in dims]
     cell = np.stack(np.meshgrid(*g, indexing="ij"), -1).transpose(2, 1, 0, 3).reshape(-1, 3) + lo  # x fastest
     first_code = morton.keys_to_codes((cell << s).astype(np.uint64))
     codes = morton.join_codes(np.asarray(m.code)[:n])

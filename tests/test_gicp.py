@@ -99,6 +99,11 @@ def test_gicp_reads_the_grid_as_the_leaves(room_pair, monkeypatch):
     m1, m2, p1, p2 = room_pair
     start = transform_from_xyz_rpy(0.04, -0.05, 0.0, 0.0, 0.0, 0.03) @ T_TRUE
     a = reg.gicp(m1, m2, p1, p2, start, max_correspondence_distance=2 * RES)
+    from octomerge_jax import budget
+
+    assert gicp_module._prepare(m1, m2, p1, p2, start, 2 * RES, 16384, 2.5, 0).voxels[0] is not None
+    with budget.memory_budget("256K"):  # grids over a quarter of the budget: the leaves instead
+        assert gicp_module._prepare(m1, m2, p1, p2, start, 2 * RES, 16384, 2.5, 0).voxels == (None, None)
     monkeypatch.setattr(gicp_module, "MAX_GRID_VOXELS", 0)
     assert gicp_module._prepare(m1, m2, p1, p2, start, 2 * RES, 16384, 2.5, 0).voxels == (None, None)
     b = reg.gicp(m1, m2, p1, p2, start, max_correspondence_distance=2 * RES)

@@ -264,5 +264,9 @@ def test_leaf_index_lookups_find_the_leaves_the_whole_search_finds(shift):
     assert set(np.asarray(m.depth)[np.asarray(row)[ref_known]]) >= {12, 13, 14, 16}
     with pytest.raises(ValueError, match="capacity 4 is smaller"):
         leaf_index(m, capacity=4, shift=shift)
+    from octomerge_jax import budget
+
+    with budget.memory_budget("64K"):  # building it would take over a quarter of the budget
+        assert leaf_index(m, shift=shift) is None
     with pytest.raises(ValueError, match="outside the given box"):
         leaf_index(m, shift=shift, box=(first + 40, last))

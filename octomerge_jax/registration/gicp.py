@@ -33,6 +33,7 @@ import numpy as np
 from .. import morton, se3, tree
 from .._ops import bucket_capacity, count_true, nonzero_rows, to_device
 from ..kernel_store import stored_jit
+from ..budget import current_budget
 from ..map import OccupancyMap
 from . import neighbors
 from ._icp import pad_points_host
@@ -364,11 +365,12 @@ def _voxel_grids(m1, m2, p1, p2, radius_voxels) -> tuple:
     whose covariances ``_solve`` computes are among them; a box that does not depend on the pose
     keeps one program per pair), of one capacity (one program for both), reaching a voxel past
     the lattice ball (float32 rounding of the points on the device); ``(None, None)`` when either
-    box is over ``MAX_GRID_VOXELS``."""
+    box is over ``MAX_GRID_VOXELS`` or the grids would take over a quarter of the memory budget
+    (``budget.current_budget``): they only save time."""
     reach = int(np.floor(radius_voxels)) + 1
     boxes = [_grid_box(p, m1.resolution, reach) for p in (p1, p2)]
     cells = max(int(np.prod(dims)) for _, dims in boxes)
-    if cells > MAX_GRID_VOXELS:
+    if cells > MAX_GRID_VOXELS or 2 * bucket_capacity(cells) > current_budget() // 4:
         return None, None
     return tuple(_filled_grid(m, lo, dims, bucket_capacity(cells)) for m, (lo, dims) in zip((m1, m2), boxes))
 
