@@ -88,7 +88,8 @@ def test_voxel_grid_flags_are_the_maps_occupied_voxels():
     centres = np.asarray((fine[:40] + 0.5) * RES, np.float32)
     threshold = m.params.occupancy_threshold_host
     from_grid = lattice_covariances(m, centres, threshold, offsets, voxel_grid(m, centres, 3))
-    np.testing.assert_array_equal(np.asarray(from_grid), np.asarray(lattice_covariances(m, centres, threshold, offsets)))
+    by_key = lattice_covariances(m, centres, threshold, offsets)
+    np.testing.assert_array_equal(np.asarray(from_grid), np.asarray(by_key))
     with pytest.raises(ValueError, match="capacity 8 is smaller"):
         voxel_grid(m, points, 2, capacity=8)
 
