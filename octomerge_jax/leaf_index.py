@@ -109,17 +109,12 @@ def lookup_keys(m: OccupancyMap, keys, index: LeafIndex):
     cell = jnp.right_shift(keys, index.shift) - index.lo
     inside = jnp.all((cell >= 0) & (cell < index.dims) & (keys >= 0) & (keys < _KEY_LIMIT), axis=-1)
     c = jnp.where(inside, cell[..., 0] + index.dims[0] * (cell[..., 1] + index.dims[1] * cell[..., 2]), 0)
-    lo, hi = index.start[c], index.end[c]
     code = m.code
 
-    def body(_, state):
-        lo, hi = state
-        mid = jnp.right_shift(lo + hi, 1)
-        go = (mid < hi) & ~morton.words_less(words, code[jnp.clip(mid, 0, code.shape[0] - 1)])
-        return jnp.where(go, mid + 1, lo), jnp.where(go, hi, mid)
+    def at_or_before(mid):  # the row at ``mid`` starts at or before the key
+        return ~morton.words_less(words, code[jnp.clip(mid, 0, code.shape[0] - 1)])
 
-    count, _ = jax.lax.fori_loop(0, 3 * index.shift + 1, body, (lo, hi))
-    i = count - 1
+    i = morton.partition_point(index.start[c], index.end[c], at_or_before, 3 * index.shift + 1) - 1
     row = jnp.clip(i, 0, m.capacity - 1)
     leaf = morton.words_equal(morton.truncate_words(words, m.depth[row]), code[row])
     return row, inside & (i >= 0) & (i < m.count) & leaf

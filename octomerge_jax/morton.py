@@ -58,6 +58,7 @@ __all__ = [
     "group_sizes",
     "words_less",
     "words_equal",
+    "partition_point",
     "searchsorted_words",
     "merge_ranks",
     "merge_sorted",
@@ -345,20 +346,13 @@ def searchsorted_words(sorted_words, query_words, side: str = "right"):
     """
     n = sorted_words.shape[0]
     q = jnp.asarray(query_words)
-    lo = jnp.zeros(q.shape[:-1], jnp.int32)
-    hi = jnp.full(q.shape[:-1], n, jnp.int32)
     steps = max(1, int(np.ceil(np.log2(n + 1))))
 
-    def body(_, state):
-        lo, hi = state
-        mid = (lo + hi) // 2
+    def before(mid):  # the entry at ``mid`` is counted
         m = sorted_words[jnp.clip(mid, 0, max(n - 1, 0))]
-        go_right = ~words_less(q, m) if side == "right" else words_less(m, q)
-        go_right = go_right & (mid < hi)
-        return jnp.where(go_right, mid + 1, lo), jnp.where(go_right, hi, mid)
+        return ~words_less(q, m) if side == "right" else words_less(m, q)
 
-    lo, hi = jax.lax.fori_loop(0, steps, body, (lo, hi))
-    return lo
+    return partition_point(jnp.zeros(q.shape[:-1], jnp.int32), jnp.full(q.shape[:-1], n, jnp.int32), before, steps)
 
 
 # ----------------------------------------------------------------------------- merge path
@@ -369,9 +363,10 @@ def code_less(ah, al, bh, bl):
     return (ah < bh) | ((ah == bh) & (al < bl))
 
 
-def _bsearch(lo, hi, pred, steps: int):
-    """``lo + #{i in [lo, hi): pred(i)}`` for a predicate true then false on ``[lo, hi)``:
-    ``steps`` (static, ``>= log2(max width + 1)``) halvings, vectorised."""
+def partition_point(lo, hi, pred, steps: int):
+    """``lo + #{i in [lo, hi): pred(i)}`` for a predicate true then false on ``[lo, hi)``
+    (int32 arrays of one shape): ``steps`` (static, ``>= log2(max width + 1)``) halvings,
+    vectorised. ``pred`` also sees ``i == hi`` (its result is then unused): clip gathers."""
 
     def body(_, state):
         lo, hi = state
@@ -415,7 +410,7 @@ def _merge_scan(ah, al, bh, bl, counts=None):
         jc, ic = jnp.clip(jb, 0, cb - 1), jnp.clip(i, 0, ca - 1)
         return (jb >= nb) | ((jb >= 0) & ~code_less(bh[jc], bl[jc], ah[ic], al[ic]))
 
-    x = _bsearch(jnp.maximum(d - nb, 0), jnp.minimum(d, na), a_before_cut, int(ca).bit_length())
+    x = partition_point(jnp.maximum(d - nb, 0), jnp.minimum(d, na), a_before_cut, int(ca).bit_length())
     y = d - x  # cut k: x[k] a's and y[k] b's precede it
     a, b = jnp.stack([ah, al], -1), jnp.stack([bh, bl], -1)
 
