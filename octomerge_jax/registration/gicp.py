@@ -322,14 +322,15 @@ class _Prepared(NamedTuple):
     n_targets: jax.Array  # () int32 valid rows of ``targets``
     mcd: float  # [m] correspondence distance
     table_size: int  # the target grid's hash table size
-    voxels: tuple  # (VoxelGrid, VoxelGrid) of map 1 around the targets and map 2 around the samples, or (None, None)
+    voxels: tuple  # (VoxelGrid, VoxelGrid) of map 1 and map 2 around their points (or their shapes), or (None, None)
     arguments: tuple  # ``_solve``'s dynamic arguments after ``grid`` and ``targets``
     offsets: tuple  # ``_solve``'s static lattice offsets
 
 
 def _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance, num_samples, radius_voxels,
-             seed) -> _Prepared:
-    """Validate ``gicp``'s inputs and cut, sample, centre and pad the clouds (``gicp``'s Args)."""
+             seed, shapes_only: bool = False) -> _Prepared:
+    """Validate ``gicp``'s inputs and cut, sample, centre and pad the clouds (``gicp``'s Args);
+    ``shapes_only``: the voxel grids as shapes (``_voxel_grids``)."""
     if abs(m1.resolution - m2.resolution) > 1e-9 * m1.resolution:
         raise ValueError(f"gicp: resolutions differ ({m1.resolution} vs {m2.resolution})")
     p1 = np.asarray(points_1, np.float64).reshape(-1, 3)
@@ -338,7 +339,7 @@ def _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance
         if p.shape[0] < GICP_MIN_POINTS:
             raise ValueError(f"gicp: {name} has {p.shape[0]} points, fewer than {GICP_MIN_POINTS}")
     T_init = np.asarray(T_1_2_init, np.float64)
-    voxels = _voxel_grids(m1, m2, p1, p2, radius_voxels)
+    voxels = _voxel_grids(m1, m2, p1, p2, radius_voxels, shapes_only)
     # only points that can find a partner (the pose moves little): each cloud cut to the other's
     # bounding box under the start, grown by twice the correspondence distance
     pad = 2.0 * float(max_correspondence_distance) + 2.0 * m1.resolution
@@ -360,18 +361,22 @@ def _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance
                      arguments, tuple(map(tuple, ball_offsets(radius_voxels).tolist())))
 
 
-def _voxel_grids(m1, m2, p1, p2, radius_voxels) -> tuple:
+def _voxel_grids(m1, m2, p1, p2, radius_voxels, shapes_only: bool = False) -> tuple:
     """Both maps' ``voxel_grid`` around all of their points ``p1``, ``p2`` (the targets and samples
     whose covariances ``_solve`` computes are among them; a box that does not depend on the pose
     keeps one program per pair), of one capacity (one program for both), reaching a voxel past
     the lattice ball (float32 rounding of the points on the device); ``(None, None)`` when either
     box is over ``MAX_GRID_VOXELS`` or the grids would take over a quarter of the memory budget
-    (``budget.current_budget``): they only save time."""
+    (``budget.current_budget``): they only save time. ``shapes_only``: their shapes and dtypes
+    (``jax.ShapeDtypeStruct``), without reading the maps' leaves (``precompile_gicp``)."""
     reach = int(np.floor(radius_voxels)) + 1
     boxes = [_grid_box(p, m1.resolution, reach) for p in (p1, p2)]
     cells = max(int(np.prod(dims)) for _, dims in boxes)
     if cells > MAX_GRID_VOXELS or 2 * bucket_capacity(cells) > current_budget() // 4:
         return None, None
+    if shapes_only:
+        box = jax.ShapeDtypeStruct((3,), np.int32)
+        return (VoxelGrid(jax.ShapeDtypeStruct((bucket_capacity(cells),), np.uint8), box, box),) * 2
     return tuple(_filled_grid(m, lo, dims, bucket_capacity(cells)) for m, (lo, dims) in zip((m1, m2), boxes))
 
 
@@ -382,7 +387,7 @@ def precompile_gicp(m1: OccupancyMap, m2: OccupancyMap, points_1, points_2, T_1_
     arguments runs, without running it; ``False`` when no kernel store is open. Raises as
     ``gicp``."""
     prep = _prepare(m1, m2, points_1, points_2, T_1_2_init, max_correspondence_distance, num_samples, radius_voxels,
-                    seed)
+                    seed, shapes_only=True)
     grid = jax.eval_shape(lambda t, n: neighbors.build_grid(t, n, prep.mcd, table_size=prep.table_size),
                           prep.targets, prep.n_targets)
     return _solve.precompile(m1, m2, prep.voxels, grid, prep.targets, *prep.arguments, offsets=prep.offsets,
