@@ -14,7 +14,7 @@ import numpy as np
 from ... import morton, se3
 from ..._ops import is_traced, to_device
 from ...leaf_index import LeafIndex, index_shift, key_box, leaf_index
-from ...map import OccupancyMap, bucket_capacity
+from ...map import OccupancyMap, bucket_capacity, leaves_cache
 from ...tree import coarsen
 
 __all__ = ["AlignProblem", "Level", "LevelPair", "both_at", "default_levels", "level_at",
@@ -313,25 +313,26 @@ def prepare_alignment(m1: OccupancyMap, m2: OccupancyMap, *, levels=None,
     """
     levels = _checked_levels(m1, m2, levels, max_points, free_weight)
     rng = np.random.default_rng(seed)
-    box1 = key_box(m1)
-    built = [_level_samples(m1, m2, box1, k, int(max_points), float(free_weight), rng, bool(jitter))
-             for k in levels]
-    mcap, pcap = _capacities(built, map_capacity, point_capacity)
-    center, radius = _pivot(built[-1].points, m2.resolution)
-    cn = np.broadcast_to(np.asarray(coverage_norm, np.float64), (len(levels),))
-    if not np.all((cn >= 0) & (cn <= 1)):
-        raise ValueError(f"coverage_norm must lie in [0, 1], got {coverage_norm!r}")
-    reverse = None
-    if symmetric:
-        try:
-            reverse = prepare_alignment(m2, m1, levels=levels[-1:], max_points=max_points,
-                                        free_weight=free_weight, seed=seed, jitter=jitter,
-                                        map_capacity=map_capacity, point_capacity=point_capacity,
-                                        coverage_norm=cn[-1:], symmetric=False)
-        except ValueError as err:
-            raise ValueError(f"{err} (in the reverse problem: map 2 at the finest level, sampled at map 1's "
-                             "points; symmetric=False skips it)") from None
-    return _assemble(built, levels, mcap, pcap, center, radius, cn, reverse)
+    with leaves_cache():  # each map's host leaves decoded once: its key box, every level's coarsening
+        box1 = key_box(m1)
+        built = [_level_samples(m1, m2, box1, k, int(max_points), float(free_weight), rng, bool(jitter))
+                 for k in levels]
+        mcap, pcap = _capacities(built, map_capacity, point_capacity)
+        center, radius = _pivot(built[-1].points, m2.resolution)
+        cn = np.broadcast_to(np.asarray(coverage_norm, np.float64), (len(levels),))
+        if not np.all((cn >= 0) & (cn <= 1)):
+            raise ValueError(f"coverage_norm must lie in [0, 1], got {coverage_norm!r}")
+        reverse = None
+        if symmetric:
+            try:
+                reverse = prepare_alignment(m2, m1, levels=levels[-1:], max_points=max_points,
+                                            free_weight=free_weight, seed=seed, jitter=jitter,
+                                            map_capacity=map_capacity, point_capacity=point_capacity,
+                                            coverage_norm=cn[-1:], symmetric=False)
+            except ValueError as err:
+                raise ValueError(f"{err} (in the reverse problem: map 2 at the finest level, sampled at map 1's "
+                                 "points; symmetric=False skips it)") from None
+        return _assemble(built, levels, mcap, pcap, center, radius, cn, reverse)
 
 
 def stack_problems(problems) -> AlignProblem:
