@@ -518,14 +518,11 @@ def coarsen(m: OccupancyMap, k: int, capacity: int | None = None, *,
     codes = morton.keys_to_codes(new_keys.astype(np.uint64))
     span = np.uint64(1) << (np.uint64(3) * (_D - new_depth).astype(np.uint64))
     codes = codes & ~(span - np.uint64(1))
-    lo = lv.log_odds
-    # leaves in Morton order stay in it (the relabelling keeps each axis's order and the levels'
-    # precedence), and equal codes are depth-16 cells of leaves finer than 2^k, so no sort is needed
-    if codes.size > 1 and not np.all(codes[1:] >= codes[:-1]):
-        order = np.lexsort((new_depth, codes))
-        codes, new_depth, lo = codes[order], new_depth[order], lo[order]
+    # ``leaves()`` come in Morton order and stay in it (the relabelling keeps each axis's order and
+    # the levels' precedence); equal codes are depth-16 cells of leaves finer than 2^k: no sort
     first = np.ones(codes.shape, bool)
     first[1:] = codes[1:] != codes[:-1]
-    val = np.maximum.reduceat(lo.astype(np.float32), np.flatnonzero(first)) if codes.size else lo[:0]
+    lo = lv.log_odds.astype(np.float32)
+    val = np.maximum.reduceat(lo, np.flatnonzero(first)) if codes.size else lo
     res = m.resolution * 2.0 ** k if resolution is None else resolution
     return from_leaves(codes[first], new_depth[first], val, res, m.params, capacity=capacity)
