@@ -1,9 +1,8 @@
-"""``registration.gicp``: the closed-form normals, the lattice covariances and the solver
-against a brute-force NumPy GICP on the small room pair."""
+"""``registration.gicp`` (module ``registration.generalized_icp``): the closed-form normals, the lattice
+covariances and the solver against a brute-force NumPy GICP on the small room pair."""
 
 from __future__ import annotations
 
-import importlib
 import math
 
 import numpy as np
@@ -13,16 +12,16 @@ from octomerge_jax import kernel_store, morton, se3
 from octomerge_jax import registration as reg
 from octomerge_jax.map import from_leaves
 from octomerge_jax import tree
-from octomerge_jax.registration.gicp import (PLANE_EPSILON, ball_offsets, lattice_covariances, smallest_eigenvector,
-                                             voxel_grid)
-from octomerge_jax.registration.gicp import _solve as gicp_solve
+from octomerge_jax.registration import generalized_icp
+from octomerge_jax.registration.generalized_icp import (PLANE_EPSILON, ball_offsets, lattice_covariances,
+                                                       smallest_eigenvector, voxel_grid)
+from octomerge_jax.registration.generalized_icp import _solve as gicp_solve
 from octomerge_jax.pipeline import transform_from_xyz_rpy
 from octomerge_jax.sim import small_room_map, small_room_voxels
 
 from helpers import own_kernel_store
 
 RES = 0.1
-gicp_module = importlib.import_module("octomerge_jax.registration.gicp")  # the name is also the function
 T_TRUE = transform_from_xyz_rpy(0.35, -0.25, 0.0, 0.0, 0.0, math.pi / 4)
 
 
@@ -102,11 +101,11 @@ def test_gicp_reads_the_grid_as_the_leaves(room_pair, monkeypatch):
     a = reg.gicp(m1, m2, p1, p2, start, max_correspondence_distance=2 * RES)
     from octomerge_jax import budget
 
-    assert gicp_module._prepare(m1, m2, p1, p2, start, 2 * RES, 16384, 2.5, 0).voxels[0] is not None
+    assert generalized_icp._prepare(m1, m2, p1, p2, start, 2 * RES, 16384, 2.5, 0).voxels[0] is not None
     with budget.memory_budget("256K"):  # grids over a quarter of the budget: the leaves instead
-        assert gicp_module._prepare(m1, m2, p1, p2, start, 2 * RES, 16384, 2.5, 0).voxels == (None, None)
-    monkeypatch.setattr(gicp_module, "MAX_GRID_VOXELS", 0)
-    assert gicp_module._prepare(m1, m2, p1, p2, start, 2 * RES, 16384, 2.5, 0).voxels == (None, None)
+        assert generalized_icp._prepare(m1, m2, p1, p2, start, 2 * RES, 16384, 2.5, 0).voxels == (None, None)
+    monkeypatch.setattr(generalized_icp, "MAX_GRID_VOXELS", 0)
+    assert generalized_icp._prepare(m1, m2, p1, p2, start, 2 * RES, 16384, 2.5, 0).voxels == (None, None)
     b = reg.gicp(m1, m2, p1, p2, start, max_correspondence_distance=2 * RES)
     np.testing.assert_array_equal(a.T_1_2, b.T_1_2)
     assert (a.num_iterations, a.num_inliers, a.rmse) == (b.num_iterations, b.num_inliers, b.rmse)
@@ -188,6 +187,6 @@ def test_precompile_readies_the_program_gicp_runs(room_pair, tmp_path):
     heard = []
     with own_kernel_store(tmp_path / "kernels", [gicp_solve]), kernel_store.compile_listener(heard.append):
         assert reg.precompile_gicp(m1, m2, p1, p2, start, max_correspondence_distance=2 * RES, max_iterations=17)
-        assert heard == ["octomerge_jax.registration.gicp._solve"]
+        assert heard == ["octomerge_jax.registration.generalized_icp._solve"]
         r = reg.gicp(m1, m2, p1, p2, start, max_correspondence_distance=2 * RES, max_iterations=17)
     assert len(heard) == 1 and r.converged

@@ -128,3 +128,20 @@ def test_all_names_resolve(module):
     m = importlib.import_module(module)
     missing = [n for n in m.__all__ if not hasattr(m, n)]
     assert not missing, f"{module}.__all__ names that do not resolve: {missing}"
+
+
+def test_no_module_is_hidden_by_a_name_of_its_package():
+    """docs/design.md, "Modules not named after their functions": ``package.name`` is the module
+    ``package/name.py`` itself, not a function the package re-exports under the module's name (which
+    left the module reachable only through ``importlib``)."""
+    import importlib
+
+    hidden = []
+    for path, parts in _modules():
+        if parts[-1] in ("__init__", "__main__") or len(parts) < 2:
+            continue
+        package = importlib.import_module(".".join(parts[:-1]))
+        module = importlib.import_module(".".join(parts))
+        if getattr(package, parts[-1], module) is not module:
+            hidden.append(".".join(parts))
+    assert not hidden, f"modules hidden by a name of their package: {hidden}"

@@ -4,10 +4,10 @@ GICP on occupied voxel centres (the sub-voxel polish),
 the correlation search over poses, rendezvous initial estimates, error metrics and one status
 vocabulary. The rigid-transform helpers are ``octomerge_jax.se3``'s, re-exported here.
 
-Submodules: ``points``, ``overlap``, ``neighbors``, ``features`` and ``global_search`` (pose
-candidates without a guess), ``_icp`` (private: the function ``icp`` is
-its public face), ``dense``, ``correlation``, ``evaluate``, ``metrics``, ``rendezvous``,
-``status``, ``gicp``.
+Submodules: ``points``, ``common_region`` (the function ``overlap``), ``neighbors``, ``features``
+and ``global_search`` (pose candidates without a guess), ``_icp`` (private: the function ``icp``
+is its public face), ``dense``, ``correlation``, ``evaluate``, ``metrics``, ``rendezvous``,
+``status``, ``generalized_icp`` (the function ``gicp``).
 """
 
 from ..se3 import check_rigid, from_quaternion, from_xyz_rpy, inverse, to_quaternion, to_xyz_rpy, transform_points
@@ -19,10 +19,10 @@ from .dense import (AlignProblem, AlignResult, align_dense, alignment_loss, best
                     fused_log_odds, level_losses, pose_from_increment, prepare_alignment, problem_loss,
                     score_alignment, solve_alignment, solve_alignment_batch, stack_problems, transformed_occupancy)
 from .evaluate import RegistrationStats, evaluate_registration
-from .gicp import GICP_MIN_POINTS, GicpResult, gicp, precompile_gicp
+from .generalized_icp import GICP_MIN_POINTS, GicpResult, gicp, precompile_gicp
 from .metrics import point_displacement, rotation_angle_error, rotation_error, translation_distance, translation_error
 from .neighbors import HashGrid, any_within, build_grid, build_grids, nearest
-from .overlap import Overlap, overlap
+from .common_region import Overlap, overlap
 from .points import occupied_points
 from .rendezvous import lift_2d, relative_pose_2d, relative_pose_3d, rendezvous_transform, rendezvous_transform_2d
 from .status import Status, usable_mask
