@@ -137,7 +137,7 @@ def test_no_module_is_hidden_by_a_name_of_its_package():
     import importlib
 
     hidden = []
-    for path, parts in _modules():
+    for _, parts in _modules():
         if parts[-1] in ("__init__", "__main__") or len(parts) < 2:
             continue
         package = importlib.import_module(".".join(parts[:-1]))
