@@ -1,6 +1,6 @@
 """A coarse grid over a map's leaves that narrows each key lookup to its cell's rows.
 
-``tree.lookup_words`` finds a key's leaf by a binary search over all of the map's Morton-sorted
+``tree.lookup_keys`` finds a key's leaf by a binary search over all of the map's Morton-sorted
 leaves: ``ceil(log2(capacity + 1))`` dependent gathers (20 at 0.5M rows). The leaves inside one
 cell of ``8^shift`` voxels (an aligned node of depth ``16 - shift``) are contiguous in Morton
 order, so ``leaf_index`` records per cell of the leaves' bounding box the rows that can hold a
@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import morton
+from . import morton, tree
 from ._ops import bucket_capacity, to_device
 from .budget import current_budget
 from .map import OccupancyMap
@@ -101,10 +101,13 @@ def leaf_index(m: OccupancyMap, capacity: int | None = None, shift: int | None =
     return LeafIndex(to_device(start), to_device(end), to_device(lo, np.int32), to_device(dims, np.int32), s)
 
 
-def lookup_keys(m: OccupancyMap, keys, index: LeafIndex):
-    """``tree.lookup_words`` of voxel ``keys (..., 3)`` int32 (OctoMap keys; any value) through
-    ``index`` (``leaf_index(m)``): ``(row (...,) int32, known (...,) bool)``, the same rows;
-    ``known`` is False outside the key range and outside the index's box."""
+def lookup_keys(m: OccupancyMap, keys, index: LeafIndex | None):
+    """``tree.lookup_keys`` of voxel ``keys (..., 3)`` int32 (OctoMap keys; any value) through
+    ``index`` (``leaf_index(m)``; ``None``: ``tree.lookup_keys`` itself): ``(row (...,) int32,
+    known (...,) bool)``, the same rows; ``known`` is False outside the key range and outside
+    the index's box."""
+    if index is None:
+        return tree.lookup_keys(m, keys)
     words = morton.keys_to_words(jnp.clip(keys, 0, _KEY_LIMIT - 1))
     cell = jnp.right_shift(keys, index.shift) - index.lo
     inside = jnp.all((cell >= 0) & (cell < index.dims) & (keys >= 0) & (keys < _KEY_LIMIT), axis=-1)
@@ -115,6 +118,5 @@ def lookup_keys(m: OccupancyMap, keys, index: LeafIndex):
         return ~morton.words_less(words, code[jnp.clip(mid, 0, code.shape[0] - 1)])
 
     i = morton.partition_point(index.start[c], index.end[c], at_or_before, 3 * index.shift + 1) - 1
-    row = jnp.clip(i, 0, m.capacity - 1)
-    leaf = morton.words_equal(morton.truncate_words(words, m.depth[row]), code[row])
-    return row, inside & (i >= 0) & (i < m.count) & leaf
+    row, known = tree.containing_leaf(m, words, i)
+    return row, inside & known

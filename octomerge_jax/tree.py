@@ -26,6 +26,8 @@ from .map import OccupancyMap, OccupancyParams, from_leaves, from_words
 __all__ = [
     "lookup",
     "lookup_words",
+    "lookup_keys",
+    "containing_leaf",
     "prune",
     "prune_runs",
     "expand",
@@ -52,10 +54,26 @@ def lookup_words(m: OccupancyMap, words):
     ``row`` indexes ``m``'s arrays; where ``known`` is False it is clipped garbage. A leaf at
     any depth matches (a pruned leaf covers its whole cube), as OctoMap's ``search``.
     """
-    i = morton.searchsorted_words(m.code, words, side="right") - 1
+    return containing_leaf(m, words, morton.searchsorted_words(m.code, words, side="right") - 1)
+
+
+def containing_leaf(m: OccupancyMap, words, i):
+    """``lookup_words``'s answer from its search: ``i (...,)`` int32 is, for each finest code
+    ``words (..., 2)``, the last row of ``m`` whose code is at or before it (``-1``: none).
+    Returns ``(row (...,) int32, known (...,) bool)``: the row holds the code's leaf when its
+    cube contains the code (and the row is a valid one)."""
     row = jnp.clip(i, 0, m.capacity - 1)
     inside = morton.words_equal(morton.truncate_words(words, m.depth[row]), m.code[row])
     return row, (i >= 0) & (i < m.count) & inside
+
+
+def lookup_keys(m: OccupancyMap, keys):
+    """``lookup_words`` of finest voxel ``keys (..., 3)`` int32 (OctoMap keys, any value):
+    ``(row (...,) int32, known (...,) bool)``; a key outside the key range is not known."""
+    limit = 2 * morton.KEY_OFFSET
+    in_range = jnp.all((keys >= 0) & (keys < limit), axis=-1)
+    row, known = lookup_words(m, morton.keys_to_words(jnp.clip(keys, 0, limit - 1)))
+    return row, known & in_range
 
 
 @jax.jit

@@ -134,9 +134,8 @@ def _occupied_at(m: OccupancyMap, grid: VoxelGrid | None, keys, occupied_log_odd
         inside = jnp.all((rel >= 0) & (rel < grid.dims), axis=-1)
         flat = rel[..., 0] + grid.dims[0] * (rel[..., 1] + grid.dims[1] * rel[..., 2])
         return inside & (grid.flags[jnp.where(inside, flat, 0)] > 0)
-    in_range = jnp.all((keys >= 0) & (keys < 2 * morton.KEY_OFFSET), axis=-1)
-    row, known = tree.lookup_words(m, morton.keys_to_words(jnp.clip(keys, 0, 2 * morton.KEY_OFFSET - 1)))
-    return known & in_range & (m.log_odds[row] >= occupied_log_odds)
+    row, known = tree.lookup_keys(m, keys)
+    return known & (m.log_odds[row] >= occupied_log_odds)
 
 
 def lattice_covariances(m: OccupancyMap, points, occupied_log_odds, offsets, grid: VoxelGrid | None = None):

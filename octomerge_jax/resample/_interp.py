@@ -146,10 +146,7 @@ def _split_points(points, resolution):
 
 def _lookup_keys(m: OccupancyMap, keys):
     """Log-odds and known flag of the leaves containing finest ``keys (..., 3)`` (any depth)."""
-    in_range = jnp.all((keys >= 0) & (keys < KEY_MAX), axis=-1)
-    words = morton.keys_to_words(jnp.clip(keys, 0, KEY_MAX - 1))
-    row, known = tree.lookup_words(m, words)
-    known = known & in_range
+    row, known = tree.lookup_keys(m, keys)
     return jnp.where(known, m.log_odds[row], jnp.float32(0)), known
 
 

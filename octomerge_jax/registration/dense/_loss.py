@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ... import morton, se3, tree
+from ... import morton, se3
 from ...leaf_index import LeafIndex, lookup_keys
 from ...map import OccupancyMap
 from ._problem import AlignProblem, Level, LevelPair, both_at, prepare_alignment
@@ -64,12 +64,7 @@ def _corners(m1: OccupancyMap, y, index: LeafIndex | None = None) -> _Corners:
     f = jnp.where(finite[:, None], u - base, 0.0)
     base = jnp.clip(base, -morton.KEY_OFFSET - 2, morton.KEY_OFFSET + 1).astype(jnp.int32)
     keys = base[:, None, :] + morton.KEY_OFFSET + jnp.asarray(_CORNERS)  # (P, 8, 3)
-    if index is not None:
-        row, known = lookup_keys(m1, keys, index)
-    else:
-        in_range = jnp.all((keys >= 0) & (keys < 2 * morton.KEY_OFFSET), axis=-1)
-        row, known = tree.lookup_words(m1, morton.keys_to_words(jnp.clip(keys, 0, 2 * morton.KEY_OFFSET - 1)))
-        known = known & in_range
+    row, known = lookup_keys(m1, keys, index)
     known = known & finite[:, None]
     c = jnp.asarray(_CORNERS, jnp.float32)  # (8, 3)
     w = jnp.prod(jnp.where(c == 1, f[:, None, :], 1.0 - f[:, None, :]), axis=-1)  # (P, 8)
